@@ -1,0 +1,1 @@
+"""Ground station that maps structures by touch."""

@@ -1,0 +1,82 @@
+"""The ``groundstation`` command.
+
+Subcommands are listed in one table and imported lazily, so ``groundstation --help`` is quick and
+a broken optional dependency of one command does not break the others. Each command module
+provides ``add_arguments(parser)`` and ``run(args) -> int``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from groundstation.errors import GroundstationError
+
+# command path -> (module, one-line help)
+COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
+    ("bench", "paper2d"): (
+        "groundstation.bench.paper2d",
+        "reproduce the paper's 2D simulation (GPIS vs robust GPIS) with tables and figures",
+    ),
+    ("config", "show"): ("groundstation.config_cli", "print the effective configuration as TOML"),
+    ("sitl",): ("firmware_bridge.sitl.cli", "run the software-in-the-loop vehicle and mocap"),
+}
+
+
+def _groups() -> dict[str, list[tuple[tuple[str, ...], str]]]:
+    groups: dict[str, list[tuple[tuple[str, ...], str]]] = {}
+    for path, (_, help_) in COMMANDS.items():
+        groups.setdefault(path[0], []).append((path, help_))
+    return groups
+
+
+def _top_usage() -> str:
+    lines = ["usage: groundstation COMMAND [...]", "", "commands:"]
+    for path, (_, help_) in COMMANDS.items():
+        lines.append(f"  {' '.join(path):<20} {help_}")
+    lines.append("")
+    lines.append("Run 'groundstation COMMAND --help' for the options of one command.")
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_top_usage())
+        return 0 if argv else 2
+    # Longest command path that matches the start of argv.
+    match = None
+    for path in sorted(COMMANDS, key=len, reverse=True):
+        if tuple(argv[: len(path)]) == path:
+            match = path
+            break
+    if match is None:
+        group = _groups().get(argv[0])
+        if group:
+            print(f"groundstation {argv[0]}: choose one of:", file=sys.stderr)
+            for path, help_ in group:
+                print(f"  {' '.join(path):<20} {help_}", file=sys.stderr)
+        else:
+            print(f"groundstation: unknown command {argv[0]!r}\n\n{_top_usage()}", file=sys.stderr)
+        return 2
+    module_name, help_ = COMMANDS[match]
+    module = importlib.import_module(module_name)
+    parser = argparse.ArgumentParser(prog="groundstation " + " ".join(match), description=help_)
+    module.add_arguments(parser)
+    args = parser.parse_args(argv[len(match) :])
+    try:
+        return int(module.run(args) or 0)
+    except GroundstationError as exc:
+        print(f"error: {exc.message}", file=sys.stderr)
+        if exc.hint:
+            print(f"hint: {exc.hint}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
