@@ -22,6 +22,22 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
     ),
     ("config", "show"): ("groundstation.config_cli", "print the effective configuration as TOML"),
     ("sitl",): ("firmware_bridge.sitl.cli", "run the software-in-the-loop vehicle and mocap"),
+    ("import", "csv"): (
+        "groundstation.acquisition.importers.cli_csv",
+        "convert a CSV IMU recording (e.g. aggressive_flight) into a replayable MCAP log",
+    ),
+    ("import", "ulog"): (
+        "groundstation.acquisition.importers.cli_ulog",
+        "convert a PX4 ULog into a replayable MCAP log",
+    ),
+    ("import", "tlog"): (
+        "groundstation.acquisition.importers.cli_tlog",
+        "convert a MAVLink .tlog into a replayable MCAP log",
+    ),
+    ("export", "tlog"): (
+        "groundstation.acquisition.importers.cli_export_tlog",
+        "write the MAVLink traffic of an MCAP log as a .tlog (QGroundControl replay)",
+    ),
 }
 
 

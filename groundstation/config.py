@@ -114,7 +114,9 @@ def _set_path(tree: dict[str, Any], dotted: str, value: str) -> None:
     node[parts[-1]] = value
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
+def load_config(
+    path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()
+) -> Config:
     """Load the configuration once: defaults, then the TOML file, then ``key=value`` overrides.
 
     Parameters
@@ -158,8 +160,12 @@ def to_toml(config: Any) -> str:
     lines: list[str] = []
 
     def emit(obj: Any, prefix: str) -> None:
-        scalars = [f for f in dataclasses.fields(obj) if not dataclasses.is_dataclass(getattr(obj, f.name))]
-        tables = [f for f in dataclasses.fields(obj) if dataclasses.is_dataclass(getattr(obj, f.name))]
+        scalars = [
+            f for f in dataclasses.fields(obj) if not dataclasses.is_dataclass(getattr(obj, f.name))
+        ]
+        tables = [
+            f for f in dataclasses.fields(obj) if dataclasses.is_dataclass(getattr(obj, f.name))
+        ]
         if prefix and scalars:
             lines.append(f"[{prefix}]")
         for f in scalars:

@@ -94,6 +94,7 @@ def test_slerp_takes_the_short_way_and_hits_the_ends():
 def test_slerp_is_unit_and_monotone_in_angle(a, b, f):
     q = slerp(yaw_quat(a), yaw_quat(b), f)
     assert abs(np.linalg.norm(q) - 1) < 1e-9
+
     # angle travelled from q0 is f times the total (shortest) angle
     def angle(p, r):
         return 2 * math.acos(min(1.0, abs(float(np.dot(p, r)))))
