@@ -1,0 +1,75 @@
+"""The supervisor with real child processes: restart after a crash, give up, clean stop."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from groundstation.supervisor import Supervisor, WorkerSpec
+
+
+def _wait_for(predicate, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def test_crashed_worker_is_restarted_then_given_up(tmp_path):
+    counter = tmp_path / "starts"
+    script = f"open({str(counter)!r}, 'a').write('x'); raise SystemExit(3)"
+    spec = WorkerSpec("crashy", (sys.executable, "-c", script), max_restarts=2, backoff_s=0.01)
+    sup = Supervisor([spec])
+    events = sup.start()
+    seen = list(events)
+    assert _wait_for(lambda: (seen.extend(sup.poll()), any(e.kind == "gave_up" for e in seen))[1])
+    kinds = [e.kind for e in seen]
+    assert kinds.count("started") == 3  # first start + 2 restarts
+    assert kinds.count("restarting") == 2
+    assert all(e.returncode == 3 for e in seen if e.kind == "exited")
+    assert counter.read_text() == "xxx"
+    sup.stop()
+
+
+def test_clean_exit_is_not_restarted():
+    sup = Supervisor([WorkerSpec("done", (sys.executable, "-c", "pass"))])
+    sup.start()
+    seen = []
+    assert _wait_for(lambda: (seen.extend(sup.poll()), any(e.kind == "exited" for e in seen))[1])
+    time.sleep(0.1)
+    seen.extend(sup.poll())
+    assert [e.kind for e in seen] == ["exited"]
+
+
+def test_stop_escalates_to_sigterm_for_a_worker_that_ignores_sigint():
+    script = (
+        "import signal, time, sys\n"
+        "signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+        "print('ready', flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    import subprocess
+
+    sup = Supervisor(
+        [WorkerSpec("stubborn", (sys.executable, "-c", script))], stdout=subprocess.PIPE
+    )
+    sup.start()
+    proc = sup._workers["stubborn"].proc
+    assert proc.stdout.readline().strip() == b"ready"
+    events = sup.stop(timeout_s=0.3)
+    assert events[0].kind == "stopped" and events[0].detail == "SIGTERM"
+    assert sup.alive() == {"stubborn": False}
+
+
+def test_restart_policy_follows_the_time_given():
+    spec = WorkerSpec("x", (sys.executable, "-c", "raise SystemExit(1)"), backoff_s=4.0)
+    sup = Supervisor([spec])
+    sup.start()
+    sup._workers["x"].proc.wait(10)
+    events = sup.poll(now=1000.0)
+    assert [e.kind for e in events] == ["exited", "restarting"]
+    assert sup.poll(now=1003.0) == []  # backoff (4 s) not yet elapsed
+    assert [e.kind for e in sup.poll(now=1004.5)] == ["started"]
+    sup.stop()
