@@ -1,0 +1,75 @@
+"""Settings of the contact detector (frozen; defaults are the paper's where it gives one)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+G = 9.80665  # standard gravity, m/s^2
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactSettings:
+    """How contacts are detected and turned into observations.
+
+    Attributes
+    ----------
+    filter : "moving_average" | "butterworth2" | "none"
+        Low-pass filter applied to the earth-frame acceleration vector before the threshold.
+        Real accelerometers on flying drones vibrate: unfiltered, a 0.6 G threshold fires on
+        12-20 % of samples of contact-free aggressive flights (DESIGN.md §3).
+    window_s : float
+        Moving-average window, seconds (the measured 50 ms).
+    cutoff_hz : float
+        Butterworth cutoff frequency, Hz.
+    threshold_g : float
+        Contact threshold a0 on |a|, in G (paper: 0.6 G).
+    release_ratio : float
+        Hysteresis: a contact ends when |a| falls below ``release_ratio * threshold_g``.
+    refractory_s : float
+        After a contact ends, no new contact starts for this long (one bump, one event).
+    contact_rate_hz : float
+        Contact observations are emitted at most at this rate while in contact (paper: 25 Hz).
+    external_rate_hz : float
+        External (free-space) observations while not in contact (paper: 0.5 Hz).
+    drone_radius_m, drone_height_m : float
+        Radius r and height h of the cylinder circumscribing the drone (contact point rule).
+    internal_depth_m : float
+        d_in: internal point depth behind the contact point (paper: 0.1 m, minimum thickness).
+    quiet_s : float
+        External points are only taken when no contact happened for this long (the drone is
+        in free space, not bouncing off a wall).
+    """
+
+    filter: Literal["moving_average", "butterworth2", "none"] = "moving_average"
+    window_s: float = 0.05
+    cutoff_hz: float = 8.0
+    threshold_g: float = 0.6
+    release_ratio: float = 0.8
+    refractory_s: float = 0.25
+    contact_rate_hz: float = 25.0
+    external_rate_hz: float = 0.5
+    drone_radius_m: float = 0.2
+    drone_height_m: float = 0.1
+    internal_depth_m: float = 0.1
+    quiet_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        positive = (
+            "window_s",
+            "cutoff_hz",
+            "threshold_g",
+            "contact_rate_hz",
+            "external_rate_hz",
+            "drone_radius_m",
+            "drone_height_m",
+            "internal_depth_m",
+        )
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"contact.{name} must be > 0, got {getattr(self, name)!r}")
+        if not 0 < self.release_ratio <= 1:
+            raise ValueError(f"contact.release_ratio must be in (0, 1], got {self.release_ratio!r}")
+        for name in ("refractory_s", "quiet_s"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"contact.{name} must be >= 0, got {getattr(self, name)!r}")
