@@ -23,26 +23,11 @@ import dataclasses
 
 import numpy as np
 
+from firmware_bridge.frames import ned_to_enu, quat_to_matrix
 from groundstation.contact.filters import make_filter
 from groundstation.contact.settings import ContactSettings, G
 
 LABEL_INSIDE, LABEL_SURFACE, LABEL_OUTSIDE = -1.0, 0.0, 1.0
-
-# ENU <-> NED is a fixed permutation with a sign: (x, y, z)_enu = (y, x, -z)_ned.
-_NED_TO_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-
-
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
 
 def earth_acceleration(specific_force_frd, quaternion_frd_ned) -> np.ndarray:
     """Gravity-compensated acceleration in the station's world frame (ENU, z up), m/s².
@@ -56,8 +41,8 @@ def earth_acceleration(specific_force_frd, quaternion_frd_ned) -> np.ndarray:
         Attitude (w, x, y, z), body FRD → local NED, as MAVLink reports it.
     """
     f = np.asarray(specific_force_frd, dtype=float)
-    a_ned = _quat_matrix(np.asarray(quaternion_frd_ned, dtype=float)) @ f + np.array([0, 0, G])
-    return _NED_TO_ENU @ a_ned
+    a_ned = quat_to_matrix(quaternion_frd_ned) @ f + np.array([0.0, 0.0, G])  # a = R f + g
+    return ned_to_enu(a_ned)
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
