@@ -1,0 +1,237 @@
+"""The one table of bus topics: name, message type, schema version, publisher, drop policy.
+
+Drop policies (enforced by the socket shells in :mod:`groundstation.bus.pubsub`):
+
+- ``"lossless"``: raw bytes, samples, observations and events. Never dropped by the bus
+  (unbounded high-water mark); sequence gaps on these topics are faults.
+- ``"latest"``: state that a newer message supersedes (mesh, fit, status, health, setpoints).
+  A small high-water mark bounds memory; a slow subscriber loses intermediate values and the
+  gap counter shows how many.
+
+Times: every header carries ``source_ns`` (the data's own clock: firmware time for samples,
+mocap time for poses, the station monotonic read time for raw chunks, the sample time that
+triggered a derived message) and ``recv_ns`` (station monotonic receive time).
+
+No topic name is a prefix of another, so a ZeroMQ prefix subscription to a name is exact.
+Payload checks are cheap (types, required/unknown keys, dtype and shape) and run on publish and
+on decode, so schema drift fails loudly in tests.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, Literal
+
+import numpy as np
+
+from groundstation.bus.errors import SchemaError
+
+Policy = Literal["lossless", "latest"]
+Kind = Literal["data", "event", "state"]
+
+_F8 = ("<f8",)
+_FLOAT = ("<f4", "<f8")
+_INT = ("<i4", "<i8")
+
+
+@dataclass(frozen=True)
+class Field:
+    """One JSON payload field: ``kind`` in str/int/float/bool/list/dict/any."""
+
+    kind: str
+    optional: bool = False
+    nullable: bool = False
+    choices: tuple[Any, ...] | None = None
+
+
+@dataclass(frozen=True)
+class Array:
+    """One array: allowed dtype strings and a shape of ints (fixed) or names (bound per message)."""
+
+    dtypes: tuple[str, ...]
+    shape: tuple[int | str, ...]
+    optional: bool = False
+
+
+@dataclass(frozen=True)
+class Topic:
+    """Declaration of one topic.
+
+    Parameters
+    ----------
+    name : str
+        Topic name (also the ZeroMQ topic frame).
+    type : str
+        Message type name carried in the header.
+    schema_version : int
+        Payload schema version carried in the header; bump on any payload change.
+    publisher_role : str
+        The process that owns the topic ("any" for status/log, which every process publishes).
+    policy : {"lossless", "latest"}
+        Drop policy, see the module docstring.
+    kind : {"data", "event", "state"}
+        Data and events are lossless; state is latest-value.
+    fields, arrays : mapping
+        Payload fields and arrays.
+    doc : str
+        Meaning and units.
+    """
+
+    name: str
+    type: str
+    schema_version: int
+    publisher_role: str
+    policy: Policy
+    kind: Kind
+    fields: Mapping[str, Field] = field(default_factory=dict)
+    arrays: Mapping[str, Array] = field(default_factory=dict)
+    doc: str = ""
+
+    def validate(self, payload: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> None:
+        """Cheap schema check; raises :class:`SchemaError` naming the offending key."""
+        _check_keys(self.name, "payload field", payload, self.fields)
+        for key, spec in self.fields.items():
+            if key in payload:
+                _check_field(self.name, key, payload[key], spec)
+        _check_keys(self.name, "array", arrays, self.arrays)
+        dims: dict[str, int] = {}
+        for key, spec in self.arrays.items():
+            if key in arrays:
+                _check_array(self.name, key, np.asarray(arrays[key]), spec, dims)
+
+
+def _check_keys(topic: str, what: str, got: Mapping[str, Any], spec: Mapping[str, Any]) -> None:
+    unknown = sorted(set(got) - set(spec))
+    missing = sorted(k for k, s in spec.items() if not s.optional and k not in got)
+    if unknown or missing:
+        raise SchemaError(
+            f"topic {topic!r}: {what}s do not match the table (unknown {unknown}, "
+            f"missing {missing})",
+            hint="update groundstation/bus/topics.py and bump schema_version",
+        )
+
+
+_KIND_CHECK = {
+    "str": lambda v: isinstance(v, str),
+    "int": lambda v: isinstance(v, int) and not isinstance(v, bool),
+    "float": lambda v: isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v),
+    "bool": lambda v: isinstance(v, bool),
+    "list": lambda v: isinstance(v, list | tuple),
+    "dict": lambda v: isinstance(v, dict),
+    "any": lambda v: True,
+}
+
+
+def _check_field(topic: str, key: str, value: Any, spec: Field) -> None:
+    if value is None and spec.nullable:
+        return
+    if not _KIND_CHECK[spec.kind](value):
+        raise SchemaError(
+            f"topic {topic!r}: field {key!r} = {value!r} is not a (finite) {spec.kind}"
+        )
+    if spec.choices is not None and value not in spec.choices:
+        raise SchemaError(f"topic {topic!r}: field {key!r} = {value!r} not in {spec.choices}")
+
+
+def _check_array(topic: str, key: str, a: np.ndarray, spec: Array, dims: dict[str, int]) -> None:
+    dtype = a.dtype.newbyteorder("<") if a.dtype.byteorder == ">" else a.dtype
+    if dtype.str not in spec.dtypes:
+        raise SchemaError(
+            f"topic {topic!r}: array {key!r} has dtype {a.dtype}, allowed {spec.dtypes}"
+        )
+    if a.ndim != len(spec.shape):
+        raise SchemaError(
+            f"topic {topic!r}: array {key!r} has shape {a.shape}, expected {spec.shape}"
+        )
+    for n, want in zip(a.shape, spec.shape, strict=True):
+        if isinstance(want, str):
+            want = dims.setdefault(want, n)
+        if n != want:
+            raise SchemaError(
+                f"topic {topic!r}: array {key!r} has shape {a.shape}, expected {spec.shape} "
+                f"with {dims}"
+            )
+
+
+def _t(*args: Any, **kw: Any) -> Topic:
+    return Topic(*args, **kw)
+
+
+_U8 = Array(("|u1",), ("n",))
+_VEC3 = Array(_F8, (3,))
+_QUAT = Array(_F8, (4,))
+
+_TABLE = [
+    _t("raw.mavlink", "raw_mavlink", 1, "link", "lossless", "data",
+       {"link": Field("str")}, {"data": _U8},
+       "Bytes chunk exactly as read from the firmware link (MAVLink 2, unparsed). "
+       "source_ns: station monotonic time of the read; link: the link URI."),
+    _t("raw.natnet", "raw_natnet", 1, "mocap", "lossless", "data",
+       {"sender": Field("str")}, {"data": _U8},
+       "One NatNet UDP datagram as received; sender: 'host:port'."),
+    _t("raw.pilot", "raw_pilot", 1, "pilot", "lossless", "data",
+       {"device": Field("str")}, {"data": _U8},
+       "Linux joystick events as read (concatenated 8-byte js_event records)."),
+    _t("samples.imu", "imu_sample", 1, "link", "lossless", "data",
+       {}, {"accel_mps2": _VEC3, "gyro_radps": _VEC3},
+       "One IMU sample in the body frame (FRD): specific force m/s^2, angular rate rad/s. "
+       "source_ns: firmware time of the sample."),
+    _t("samples.attitude", "attitude_sample", 1, "link", "lossless", "data",
+       {}, {"q_wxyz": _QUAT, "rates_radps": Array(_F8, (3,), optional=True)},
+       "Attitude: unit quaternion (w, x, y, z) rotating body FRD to earth NED."),
+    _t("samples.pose", "pose_sample", 1, "mocap", "lossless", "data",
+       {"body_id": Field("int"), "valid": Field("bool")},
+       {"position_m": _VEC3, "q_wxyz": _QUAT},
+       "Mocap rigid-body pose in the world frame (m, quaternion w-first). source_ns: mocap time."),
+    _t("link.health", "link_health", 1, "link", "latest", "state",
+       {"connected": Field("bool"), "rx_bytes": Field("int"), "rx_messages": Field("int"),
+        "bad_frames": Field("int"), "last_heartbeat_ns": Field("int", nullable=True)}, {},
+       "Firmware link counters (cumulative) and the station time of the last HEARTBEAT."),
+    _t("contact.event", "contact_event", 1, "detector", "lossless", "event",
+       {"id": Field("int"), "state": Field("str", choices=("begin", "end")),
+        "peak_g": Field("float")},
+       {"position_m": _VEC3, "normal": _VEC3},
+       "A contact began or ended: drone position (m, world), outward unit normal, peak |a| in G."),
+    _t("observations", "observation", 1, "detector", "lossless", "data",
+       {"id": Field("int"), "label": Field("int", choices=(-1, 0, 1))},
+       {"x_m": _VEC3, "normal": _VEC3},
+       "One GPIS observation: point x (m, world), label y (0 surface, -1 inside, +1 outside), "
+       "outward unit normal (zeros for external points); source_ns: the data time it refers to."),
+    _t("mapper.fit", "mapper_fit", 1, "mapper", "latest", "state",
+       {"fit_index": Field("int")},
+       {"ids": Array(_INT, ("n",)), "u": Array(_FLOAT, ("n",)), "flags": Array(("|u1",), ("n",))},
+       "Per-observation uncertainty u_i = beta~_i/alpha~_i and flag bits after a refit."),
+    _t("mesh", "mesh", 1, "mapper", "latest", "state",
+       {"fit_index": Field("int")},
+       {"vertices": Array(_FLOAT, ("v", 3)), "triangles": Array(_INT, ("t", 3)),
+        "vertex_std": Array(_FLOAT, ("v",))},
+       "Surface mesh {mu = 0}: vertices (m, world), triangles (vertex indices), predictive std."),
+    _t("status", "status", 1, "any", "latest", "state",
+       {"process": Field("str"), "state": Field("str"), "topics": Field("dict"),
+        "text": Field("str", optional=True)}, {},
+       "Per-process status: state and per-topic counters (rate_hz, received, gaps, ...)."),
+    _t("pilot.command", "pilot_command", 1, "pilot", "latest", "state",
+       {"x": Field("int"), "y": Field("int"), "z": Field("int"), "r": Field("int"),
+        "buttons": Field("int"), "enabled": Field("bool")}, {},
+       "Shaped MANUAL_CONTROL setpoint (-1000..1000; z 0..1000); a newer one supersedes."),
+    _t("pilot.event", "pilot_event", 1, "pilot", "lossless", "event",
+       {"event": Field("str"), "text": Field("str", optional=True)}, {},
+       "Pilot path events: device lost/found, failsafe engaged/cleared, e-stop."),
+    _t("log", "log", 1, "any", "lossless", "event",
+       {"process": Field("str"), "level": Field("str", choices=("info", "warning", "error")),
+        "message": Field("str"), "hint": Field("str", optional=True, nullable=True)}, {},
+       "Warnings and errors from worker processes (shown in the status line)."),
+]  # fmt: skip
+
+TOPICS: Mapping[str, Topic] = MappingProxyType({t.name: t for t in _TABLE})
+
+
+def get_topic(name: str, table: Mapping[str, Topic] = TOPICS) -> Topic:
+    """Look up a topic; raises :class:`SchemaError` listing the known names."""
+    try:
+        return table[name]
+    except KeyError:
+        raise SchemaError(f"unknown topic {name!r}; known: {sorted(table)}") from None
