@@ -1,0 +1,157 @@
+"""Export a recording's MAVLink traffic to a ``.tlog`` (for QGroundControl, MAVExplorer, ...).
+
+Every valid frame on the ``raw.mavlink`` channels is written unchanged, in log-time order, as
+``uint64 big-endian (log_time_ns // 1000) | frame``. Raw chunks may hold several frames or
+split a frame across reads: a per-channel splitter reassembles them (the same length rules and
+CRC check as :mod:`.tlog`); damaged bytes are skipped and counted. With ``natnet_as_mocap``
+(default), each NatNet frame's rigid body becomes an ATT_POS_MOCAP frame (Motive -> world
+(ENU) -> NED, quaternion FLU/ENU -> FRD/NED, via ``firmware_bridge.frames``) from system 1,
+component 197, so the mocap track appears in the tlog too.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from groundstation.acquisition import layout
+from groundstation.acquisition.importers import (
+    AUTOPILOT_SYSTEM_ID,
+    MOCAP_COMPONENT_ID,
+    RIGID_BODY_ID,
+)
+from groundstation.acquisition.importers.tlog import (
+    _TS,
+    FrameValidator,
+    frame_length,
+    message_id,
+    message_name,
+)
+from groundstation.acquisition.reader import open_recording
+from groundstation.acquisition.recorder import RecordingError
+
+
+class FrameSplitter:
+    """Reassemble MAVLink frames from a byte stream cut at arbitrary points (pure)."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self._check = FrameValidator()
+        self.garbage_bytes = 0
+
+    def feed(self, data: bytes) -> list[bytes]:
+        """Add bytes; return the complete valid frames found."""
+        buf = self._buf
+        buf += data
+        out: list[bytes] = []
+        pos = 0
+        while pos < len(buf):
+            if buf[pos] not in (0xFD, 0xFE):
+                pos += 1
+                self.garbage_bytes += 1
+                continue
+            flen = frame_length(buf, pos)
+            if flen is None or pos + flen > len(buf):
+                break  # wait for more bytes
+            frame = bytes(buf[pos : pos + flen])
+            if self._check.is_valid(frame):
+                out.append(frame)
+                pos += flen
+            else:
+                pos += 1
+                self.garbage_bytes += 1
+        del buf[:pos]
+        return out
+
+
+@dataclass
+class ExportReport:
+    """What an export wrote."""
+
+    source: str
+    out: str
+    counts: dict[str, int] = field(default_factory=dict)
+    skipped: dict[str, int] = field(default_factory=dict)
+    records: int = 0
+
+    def describe(self) -> str:
+        lines = [f"exported {self.source} -> {self.out}: {self.records} tlog records"]
+        for name, n in sorted(self.counts.items()):
+            lines.append(f"  {name:<20} {n:>8}")
+        for reason, n in sorted(self.skipped.items()):
+            lines.append(f"  skipped {n} ({reason})")
+        return "\n".join(lines)
+
+
+def export_tlog(
+    src: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    *,
+    natnet_as_mocap: bool = True,
+) -> ExportReport:
+    """Write the MAVLink frames of recording ``src`` (and optionally its mocap poses) to ``out``.
+
+    Raises
+    ------
+    RecordingError
+        If ``out`` cannot be written (path and OS error named).
+    """
+    from firmware_bridge.frames import enu_to_ned, motive_to_world, quat_enu_flu_to_ned_frd
+    from firmware_bridge.mavlink.codec import MavlinkCodec
+    from firmware_bridge.mavlink.messages import MocapPose
+    from firmware_bridge.natnet import FrameOfData, parse_packet
+
+    report = ExportReport(str(src), str(out))
+    counts: Counter = Counter()
+    skipped: Counter = Counter()
+    splitters: dict[int, FrameSplitter] = {}
+    mocap = MavlinkCodec(AUTOPILOT_SYSTEM_ID, MOCAP_COMPONENT_ID)
+    topics = [layout.RAW_MAVLINK_TOPIC] + ([layout.RAW_NATNET_TOPIC] if natnet_as_mocap else [])
+    chunks: list[bytes] = []
+    with open_recording(src) as rec:
+        for msg in rec.messages(topics=topics):
+            ts = _TS.pack(msg.log_time_ns // 1000)
+            if msg.topic == layout.RAW_MAVLINK_TOPIC:
+                splitter = splitters.setdefault(msg.channel.id, FrameSplitter())
+                for frame in splitter.feed(msg.data):
+                    chunks.append(ts + frame)
+                    counts[message_name(message_id(frame))] += 1
+                continue
+            meta = msg.channel.metadata
+            version = tuple(int(v) for v in meta.get(layout.KEY_NATNET_VERSION, "4.1").split("."))
+            try:
+                frame_of_data = parse_packet(msg.data, version)  # type: ignore[arg-type]
+            except Exception:  # noqa: BLE001 - a bad datagram is counted, never fatal
+                skipped["NatNet datagram that does not parse"] += 1
+                continue
+            if not isinstance(frame_of_data, FrameOfData):
+                continue
+            body = frame_of_data.rigid_body(RIGID_BODY_ID) or (
+                frame_of_data.rigid_bodies[0] if frame_of_data.rigid_bodies else None
+            )
+            if body is None or not body.tracking_valid:
+                skipped["NatNet frame without a tracked rigid body"] += 1
+                continue
+            p_w, q_w = motive_to_world(body.position, body.orientation, meta.get("motive_up", "y"))
+            pose = MocapPose(
+                tuple(quat_enu_flu_to_ned_frd(q_w)),
+                tuple(enu_to_ned(p_w)),
+                time_source_ns=msg.publish_time_ns,
+            )
+            chunks.append(ts + mocap.encode(pose))
+            counts["ATT_POS_MOCAP (from NatNet)"] += 1
+    garbage = sum(s.garbage_bytes for s in splitters.values())
+    if garbage:
+        skipped["damaged MAVLink bytes"] = garbage
+    try:
+        Path(out).write_bytes(b"".join(chunks))
+    except OSError as exc:
+        raise RecordingError(
+            f"cannot write tlog {str(out)!r}: {exc.strerror or exc} (errno {exc.errno})"
+        ) from exc
+    report.counts = dict(counts)
+    report.skipped = dict(skipped)
+    report.records = len(chunks)
+    return report
