@@ -1,0 +1,197 @@
+"""``groundstation sitl``: the simulated vehicle and mocap over real transports.
+
+groundstation sitl [--scene NAME|FILE] [--link pty|udp://HOST:PORT] [--mocap udp://HOST:PORT]
+                   [--pilot script:NAME|manual] [--speed X] [--seed N] [--duration SECONDS]
+                   [--truth FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import signal
+import sys
+import time
+from pathlib import Path
+
+from firmware_bridge.errors import BridgeError
+from firmware_bridge.sitl.gusts import GustParams
+from firmware_bridge.sitl.runner import MocapSettings, Simulation, run_paced
+from firmware_bridge.sitl.scene import load_scene, named_scenes
+from firmware_bridge.sitl.transport import PtyTransport, UdpTransport, open_transport
+from firmware_bridge.sitl.vehicle import VehicleSettings
+
+
+def _speed(text: str) -> float:
+    if text == "max":
+        return math.inf
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--speed {text!r}: expected a number or 'max'") from None
+    if not value > 0 or not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"--speed {text!r}: must be > 0")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``groundstation sitl``."""
+    parser.add_argument(
+        "--scene", default="paper", help=f"named scene ({', '.join(named_scenes())}) or a JSON file"
+    )
+    parser.add_argument(
+        "--link",
+        default="pty",
+        help="pty (prints the device to open) or udp://HOST:PORT (MAVLink target)",
+    )
+    parser.add_argument(
+        "--mocap",
+        default=None,
+        metavar="udp://HOST:PORT",
+        help="send NatNet 4.1 frames of rigid body 1 there (default: no mocap)",
+    )
+    parser.add_argument(
+        "--pilot",
+        default="manual",
+        help="manual (MANUAL_CONTROL) or script:hover|survey|touch|slow_touch",
+    )
+    parser.add_argument(
+        "--speed", type=_speed, default=1.0, help="times real time (default 1); 'max' = unpaced"
+    )
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="simulated seconds (default: until Ctrl-C; scripts end 2 s after the script)",
+    )
+    parser.add_argument(
+        "--truth",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write the ground-truth sidecar (JSON) here at exit",
+    )
+    parser.add_argument(
+        "--gust-rate",
+        type=float,
+        default=GustParams().rate_per_min,
+        metavar="PER_MIN",
+        help="gusts per minute (false-positive contacts)",
+    )
+    parser.add_argument("--mocap-up", choices=("y", "z"), default="y", help="Motive up axis")
+    parser.add_argument(
+        "--mocap-drop",
+        type=float,
+        default=MocapSettings().drop_probability,
+        help="probability that a mocap frame is dropped",
+    )
+    parser.add_argument(
+        "--mocap-noise",
+        type=float,
+        default=MocapSettings().position_noise,
+        metavar="METRES",
+        help="mocap position noise, 1 sigma",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the SITL until ``--duration``, the end of a script, SIGINT or SIGTERM."""
+    try:
+        return _run(args)
+    except BridgeError as exc:
+        print(f"error: {exc.message}", file=sys.stderr)
+        if exc.hint:
+            print(f"hint: {exc.hint}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
+    scene = load_scene(args.scene)
+    pilot = args.pilot
+    if pilot != "manual" and not pilot.startswith("script:"):
+        raise BridgeError(
+            f"--pilot {pilot!r}: expected manual or script:NAME", hint="e.g. --pilot script:survey"
+        )
+    if not 0.0 <= args.mocap_drop <= 1.0:
+        raise BridgeError(f"--mocap-drop {args.mocap_drop}: must be within 0..1")
+    vs = VehicleSettings(gusts=GustParams(rate_per_min=max(0.0, args.gust_rate)))
+    mocap = MocapSettings(
+        rate=MocapSettings().rate if args.mocap else 0.0,  # no mocap sink: do not simulate it
+        up=args.mocap_up,
+        drop_probability=args.mocap_drop,
+        position_noise=max(0.0, args.mocap_noise),
+    )
+    sim = Simulation(scene, pilot, args.seed, args.duration, vs, mocap)
+
+    link = open_transport(args.link)
+    mocap_tx = UdpTransport(args.mocap, receive=False) if args.mocap else None
+    sinks: dict = {"mavlink": link}
+    if mocap_tx is not None:
+        sinks["mocap"] = mocap_tx
+    if args.link == "pty":
+        print(f"SITL MAVLink on {link.path}", flush=True)  # type: ignore[union-attr]
+    else:
+        print(f"SITL MAVLink to {args.link} (local port {link.local_port})", flush=True)  # type: ignore[union-attr]
+    if mocap_tx is not None:
+        print(f"SITL NatNet 4.1 to {args.mocap}", flush=True)
+    print(
+        f"scene {scene.name}, pilot {pilot}, seed {args.seed}, speed {args.speed}",
+        file=sys.stderr,
+        flush=True,
+    )
+
+    stopping: list[str] = []
+
+    def on_signal(signum: int, _frame: object) -> None:
+        stopping.append(signal.Signals(signum).name)
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    script_end: list[float] = []
+
+    def stop() -> bool:
+        if stopping:
+            return True
+        if args.duration is None and pilot != "manual" and pilot != "script:hover":
+            if sim.vehicle.pilot_done:
+                if not script_end:
+                    script_end.append(sim.vehicle.t)
+                return sim.vehicle.t > script_end[0] + 2.0
+        return False
+
+    def status(t: float) -> None:
+        st = sim.stats
+        dropped = link.stats.frames_dropped + (mocap_tx.stats.frames_dropped if mocap_tx else 0)
+        print(
+            f"sitl t={t:7.1f} s  mode {sim.vehicle.mode:<8} mavlink {st.mavlink_frames} "
+            f"mocap {st.mocap_frames}  dropped {dropped}  rx cmds {st.commands} "
+            f"manual {st.manual_controls}",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    wall0 = time.monotonic()
+    try:
+        run_paced(sim, sinks, [link], args.speed, stop, status)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        if isinstance(link, PtyTransport):
+            link.drain(3.0)  # under load the station may lag; closing would discard its input
+        link.close()
+        if mocap_tx is not None:
+            mocap_tx.close()
+        if args.truth is not None:
+            args.truth.write_text(json.dumps(sim.truth(), indent=1), encoding="utf-8")
+    wall = time.monotonic() - wall0
+    why = stopping[0] if stopping else "end"
+    status(sim.vehicle.t)
+    print(
+        f"sitl stopped ({why}) after {sim.vehicle.t:.2f} s simulated in {wall:.2f} s wall; "
+        f"pty/udp dropped {link.stats.frames_dropped} frames",
+        file=sys.stderr,
+        flush=True,
+    )
+    return 0

@@ -1,0 +1,215 @@
+"""Vehicle-side transports of the SITL: a pseudo-terminal (like USB telemetry) and UDP.
+
+Both are thin: ``send(bytes)`` never blocks the simulation (a full pty buffer drops whole frames
+and counts them), ``recv()`` returns what the station sent (non-blocking), ``fileno()`` serves
+select. The pty's device path is what the station opens (``serial:///dev/pts/N``).
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import ipaddress
+import os
+import select
+import socket
+import struct
+import termios
+import time
+import tty
+from dataclasses import dataclass
+
+from firmware_bridge.errors import LinkError
+from firmware_bridge.link.base import parse_uri
+
+
+@dataclass
+class TransportStats:
+    frames_sent: int = 0
+    bytes_sent: int = 0
+    frames_dropped: int = 0
+    bytes_dropped: int = 0
+    bytes_received: int = 0
+    send_errors: int = 0
+
+
+class PtyTransport:
+    """A pseudo-terminal pair in raw mode; we hold the master, the station opens ``path``.
+
+    Parameters
+    ----------
+    max_pending : bytes buffered while the reader is slow; beyond it whole frames are dropped.
+    """
+
+    def __init__(self, max_pending: int = 65536):
+        self.master, self._slave = os.openpty()
+        try:
+            tty.setraw(self._slave)  # no echo, no line discipline: bytes pass unchanged
+            attrs = termios.tcgetattr(self._slave)
+            attrs[4] = attrs[5] = termios.B921600
+            termios.tcsetattr(self._slave, termios.TCSANOW, attrs)
+            os.set_blocking(self.master, False)
+            self.path = os.ttyname(self._slave)
+        except OSError as exc:
+            self.close()
+            raise LinkError(f"cannot set up the SITL pseudo-terminal: {exc}") from exc
+        self.max_pending = max_pending
+        self._pending = bytearray()
+        self.stats = TransportStats()
+        self.uri = f"serial://{self.path}?baud=921600"
+
+    def fileno(self) -> int:
+        return self.master
+
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes accepted by :meth:`send` but not yet taken by the pty."""
+        return len(self._pending)
+
+    def flush(self) -> None:
+        """Write as much of the pending buffer as the pty accepts."""
+        while self._pending:
+            try:
+                n = os.write(self.master, self._pending)
+            except BlockingIOError:
+                return
+            except OSError as exc:
+                if exc.errno in (errno.EIO, errno.EAGAIN):
+                    return
+                raise
+            del self._pending[:n]
+
+    def send(self, data: bytes) -> None:
+        """Queue one frame; drop it whole (counted) if the reader is too far behind."""
+        self.flush()
+        if len(self._pending) + len(data) > self.max_pending:
+            self.stats.frames_dropped += 1
+            self.stats.bytes_dropped += len(data)
+            return
+        self._pending += data
+        self.stats.frames_sent += 1
+        self.stats.bytes_sent += len(data)
+        self.flush()
+
+    def drain(self, timeout_s: float = 0.5) -> None:
+        """Give a slow reader up to ``timeout_s`` to take the pending bytes (before closing)."""
+        end = time.monotonic() + timeout_s
+        self.flush()
+        while self._pending and time.monotonic() < end:
+            select.select([], [self.master], [], max(0.0, end - time.monotonic()))
+            self.flush()
+        # Closing a pty master discards what the station has not read yet, so also wait for the
+        # kernel queue to empty. Shutdown only: a short sleep loop is fine here.
+        while self._unread() > 0 and time.monotonic() < end:
+            time.sleep(0.005)
+
+    def _unread(self) -> int:
+        """Bytes written to the pty that the station side has not read yet."""
+        try:
+            raw = fcntl.ioctl(self._slave, termios.FIONREAD, b"\0\0\0\0")
+        except OSError:
+            return 0
+        return struct.unpack("i", raw)[0]
+
+    def recv(self) -> bytes:
+        """Bytes the station wrote to the device (b"" if none)."""
+        try:
+            data = os.read(self.master, 65536)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError as exc:
+            if exc.errno == errno.EIO:
+                return b""
+            raise
+        self.stats.bytes_received += len(data)
+        return data
+
+    def close(self) -> None:
+        for fd in (getattr(self, "master", -1), getattr(self, "_slave", -1)):
+            if fd >= 0:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self.master = self._slave = -1
+
+
+class UdpTransport:
+    """UDP socket that sends to ``udp://HOST:PORT`` and receives commands on the same socket.
+
+    ``?local_port=PORT`` binds the local port (default: an ephemeral one).
+    """
+
+    def __init__(self, uri: str, receive: bool = True):
+        p = parse_uri(uri)
+        if p.scheme != "udp" or not p.host or not p.port:
+            raise p.error("expected udp://HOST:PORT", "udp://127.0.0.1:14550")
+        local = p.int_param("local_port", 0, lo=0, example="udp://127.0.0.1:14550?local_port=14555")
+        try:
+            info = socket.getaddrinfo(p.host, p.port, type=socket.SOCK_DGRAM)[0]
+        except socket.gaierror as exc:
+            raise LinkError(f"cannot resolve {p.host!r} in {uri!r}: {exc}") from None
+        self.target = info[4]
+        self.sock = socket.socket(info[0], socket.SOCK_DGRAM)
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 20)
+            if info[0] == socket.AF_INET and ipaddress.ip_address(self.target[0]).is_multicast:
+                self.sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 1)
+            self.sock.bind(("", local))
+        except OSError as exc:
+            self.sock.close()
+            raise LinkError(f"cannot open UDP socket for {uri!r}: {exc}") from exc
+        self.sock.setblocking(False)
+        self.receive = receive
+        self.uri = uri
+        self.local_port = self.sock.getsockname()[1]
+        self.stats = TransportStats()
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def flush(self) -> None:
+        """Datagrams are never buffered here."""
+
+    def send(self, data: bytes) -> None:
+        """One datagram; errors (no listener yet, full buffer) drop it and are counted."""
+        try:
+            self.sock.sendto(data, self.target)
+        except OSError:
+            self.stats.frames_dropped += 1
+            self.stats.bytes_dropped += len(data)
+            self.stats.send_errors += 1
+            return
+        self.stats.frames_sent += 1
+        self.stats.bytes_sent += len(data)
+
+    def recv(self) -> bytes:
+        """All datagrams waiting (concatenated), b"" if none."""
+        chunks = []
+        for _ in range(1000):
+            try:
+                data, _ = self.sock.recvfrom(65536)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:  # e.g. ECONNREFUSED reported for an earlier send
+                self.stats.send_errors += 1
+                continue
+            chunks.append(data)
+        out = b"".join(chunks)
+        self.stats.bytes_received += len(out)
+        return out
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def open_transport(link: str) -> PtyTransport | UdpTransport:
+    """``pty`` -> :class:`PtyTransport`; ``udp://HOST:PORT`` -> :class:`UdpTransport`."""
+    if link == "pty":
+        return PtyTransport()
+    if link.startswith("udp://"):
+        return UdpTransport(link)
+    raise LinkError(
+        f"--link {link!r}: expected 'pty' or udp://HOST:PORT",
+        hint="e.g. --link udp://127.0.0.1:14550",
+    )

@@ -1,0 +1,134 @@
+"""Scene loading/validation and the geometry oracles (hand-computed distances and normals)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from firmware_bridge.errors import BridgeError
+from firmware_bridge.sitl.scene import (
+    Box,
+    Cylinder,
+    SceneError,
+    Sphere,
+    load_scene,
+    named_scenes,
+    parse_scene,
+)
+
+REGION = {"min": [0, 0, 0], "max": [8, 4, 2]}
+
+
+def _scene(objects, **extra):
+    return {"region": REGION, "objects": objects, **extra}
+
+
+@pytest.mark.parametrize(
+    ("data", "field"),
+    [
+        ({"objects": []}, "region"),
+        ({"region": {"min": [0, 0], "max": [8, 4, 2]}}, "region.min"),
+        ({"region": {"min": [0, 0, 0], "max": [8, 4, "x"]}}, "region.max[2]"),
+        ({"region": {"min": [0, 0, 0], "max": [8, 0.1, 2]}}, "region.max[1]"),
+        (_scene([{"type": "cone"}]), "objects[0].type"),
+        (_scene([{"type": "box", "min": [1, 1, 0], "max": [0.5, 2, 1]}]), "objects[0].max[0]"),
+        (_scene([{"type": "cylinder", "center": [4, 2, 0], "radius": -1, "height": 1}]),
+         "objects[0].radius"),
+        (_scene([{"type": "box", "min": [1, 1, 0], "max": [2, 2, 1]},
+                 {"type": "cylinder", "center": [4, 2, 0], "radius": 0.3}]), "objects[1].height"),
+        (_scene([{"type": "sphere", "center": [4, 2, float("nan")], "radius": 1}]),
+         "objects[0].center[2]"),
+        (_scene([], start=[9, 1, 1]), "start"),
+        (_scene([{"type": "box", "min": [0, 0, 0], "max": [2, 2, 2]}], start=[1, 1, 1]), "start"),
+        ([1, 2], "expected a JSON object"),
+    ],
+)  # fmt: skip
+def test_validation_errors_name_the_field(data, field):
+    with pytest.raises(SceneError) as err:
+        parse_scene(data)
+    assert field in str(err.value)
+    assert isinstance(err.value, BridgeError)
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(SceneError, match="no such named scene"):
+        load_scene("no-such-scene")
+    bad = tmp_path / "bad.json"
+    bad.write_text("{ not json", encoding="utf-8")
+    with pytest.raises(SceneError, match="line 1"):
+        load_scene(bad)
+
+
+def test_named_scenes_load_and_round_trip(tmp_path):
+    names = named_scenes()
+    assert {"wall", "pillar", "pier", "paper"} <= set(names)
+    for name in names:
+        scene = load_scene(name)
+        assert scene.objects
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps(scene.to_dict()), encoding="utf-8")
+        again = load_scene(path)
+        assert again.objects == scene.objects and again.start == scene.start
+
+
+def test_box_distance_normal_by_hand():
+    b = Box((0.0, 0.0, 0.0), (2.0, 1.0, 1.0))
+    d, q, n = b.closest((3.0, 0.5, 0.5))  # in front of the +x face
+    assert d == pytest.approx(1.0) and q == pytest.approx((2, 0.5, 0.5)) and n == (1, 0, 0)
+    d, q, n = b.closest((3.0, 2.0, 0.5))  # beside the (+x, +y) edge
+    assert d == pytest.approx(math.sqrt(2)) and q == pytest.approx((2, 1, 0.5))
+    assert n == pytest.approx((math.sqrt(0.5), math.sqrt(0.5), 0))
+    d, q, n = b.closest((3.0, 2.0, 2.0))  # corner
+    assert d == pytest.approx(math.sqrt(3)) and q == pytest.approx((2, 1, 1))
+    d, q, n = b.closest((1.0, 0.5, 0.9))  # inside, nearest face is the top
+    assert d == pytest.approx(-0.1) and q == pytest.approx((1, 0.5, 1)) and n == (0, 0, 1)
+
+
+def test_cylinder_distance_normal_by_hand():
+    c = Cylinder((4.0, 2.0, 0.0), 0.5, 1.5)
+    d, q, n = c.closest((4.0, 3.0, 1.0))  # side, +y
+    assert (
+        d == pytest.approx(0.5)
+        and q == pytest.approx((4, 2.5, 1))
+        and n == pytest.approx((0, 1, 0))
+    )
+    d, q, n = c.closest((4.3, 2.0, 2.0))  # above the top disc
+    assert (
+        d == pytest.approx(0.5)
+        and q == pytest.approx((4.3, 2, 1.5))
+        and n == pytest.approx((0, 0, 1))
+    )
+    d, q, n = c.closest((5.5, 2.0, 2.5))  # beyond the rim: distance to the circle edge
+    assert d == pytest.approx(math.hypot(1.0, 1.0)) and q == pytest.approx((4.5, 2, 1.5))
+    d, q, n = c.closest((4.0, 2.4, 0.75))  # inside, nearest is the side
+    assert d == pytest.approx(-0.1) and n == pytest.approx((0, 1, 0))
+
+
+def test_sphere_distance_normal_by_hand():
+    s = Sphere((1.0, 1.0, 1.0), 0.5)
+    d, q, n = s.closest((1.0, 1.0, 3.0))
+    assert (
+        d == pytest.approx(1.5)
+        and q == pytest.approx((1, 1, 1.5))
+        and n == pytest.approx((0, 0, 1))
+    )
+
+
+def test_surface_samples_lie_on_the_surface():
+    scene = load_scene("pier")
+    pts = scene.sample_surface(np.random.default_rng(3), 400)
+    assert pts.shape == (400, 3)
+    assert np.max(np.abs(scene.signed_distance(pts))) < 1e-9
+
+
+def test_signed_distance_vectorised_matches_closest():
+    scene = load_scene("paper")
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(scene.region_min, scene.region_max, (50, 3))
+    sd = scene.signed_distance(pts)
+    for p, d in zip(pts, sd, strict=True):
+        assert d == pytest.approx(scene.closest(tuple(p))[0])
+    assert (sd < 0).any() or (sd > 0).all()
