@@ -34,6 +34,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
         "groundstation.acquisition.importers.cli_tlog",
         "convert a MAVLink .tlog into a replayable MCAP log",
     ),
+    ("joystick", "calibrate"): (
+        "groundstation.pilot.calibrate_cli",
+        "walk through joystick calibration in the terminal and store it per device",
+    ),
     ("export", "tlog"): (
         "groundstation.acquisition.importers.cli_export_tlog",
         "write the MAVLink traffic of an MCAP log as a .tlog (QGroundControl replay)",

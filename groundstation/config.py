@@ -14,16 +14,20 @@ import typing
 from pathlib import Path
 from typing import Any
 
+from groundstation.contact.settings import ContactSettings
 from groundstation.errors import ConfigError
 from groundstation.mapping.settings import MappingSettings, SurfaceSettings
+from groundstation.pilot.settings import PilotSettings
 
 
 @dataclasses.dataclass(frozen=True)
 class Config:
     """The whole station's configuration; one section per stage."""
 
+    contact: ContactSettings = ContactSettings()
     mapping: MappingSettings = MappingSettings()
     surface: SurfaceSettings = SurfaceSettings()
+    pilot: PilotSettings = PilotSettings()
 
 
 def _coerce(value: Any, annotation: Any, where: str) -> Any:
