@@ -1,0 +1,121 @@
+"""Accuracy measures on hand-checkable geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from groundstation.errors import InputDataError
+from groundstation.mapping.grid import Grid
+from groundstation.mapping.metrics import (
+    chamfer_distance,
+    distance_to,
+    false_positive_clarity,
+    phantom_length,
+    polyline_length,
+    sample_mesh_surface,
+    sample_polylines,
+    shape_error,
+)
+
+
+def circle(radius: float, n: int = 2000, center=(0.0, 0.0)) -> np.ndarray:
+    t = np.linspace(0, 2 * np.pi, n + 1)
+    return np.stack([center[0] + radius * np.cos(t), center[1] + radius * np.sin(t)], axis=1)
+
+
+def test_chamfer_concentric_circles_is_radius_gap():
+    a = sample_polylines([circle(1.0)], 0.002)
+    b = sample_polylines([circle(1.3)], 0.002)
+    assert chamfer_distance(a, b) == pytest.approx(0.3, abs=1e-4)
+    assert chamfer_distance(a, a) == 0.0
+    assert np.isnan(chamfer_distance(a, np.zeros((0, 2))))
+
+
+def test_chamfer_charges_missing_surface():
+    full = sample_polylines([circle(1.0)], 0.002)
+    half = full[full[:, 1] > 0]
+    # half -> full is 0. full -> half: the upper half is at 0, a lower point at angle -phi
+    # (phi <= pi/2) is 2 sin(phi/2) from the nearest end (1, 0); its mean over phi is
+    # (8/pi)(1 - cos(pi/4)). Chamfer = (0 + (0 + that) / 2) / 2.
+    expected = 0.25 * (8 / np.pi) * (1 - np.cos(np.pi / 4))
+    assert chamfer_distance(half, full) == pytest.approx(expected, abs=1e-3)
+
+
+def test_sample_polylines_uniform_and_length():
+    line = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 0.5]])
+    assert polyline_length([line]) == pytest.approx(1.5)
+    pts = sample_polylines([line], 0.01)
+    assert len(pts) == 150
+    assert polyline_length([circle(2.0, 4000)]) == pytest.approx(2 * np.pi * 2.0, rel=1e-5)
+
+
+def test_sample_mesh_surface_is_area_uniform_and_deterministic():
+    # Two triangles forming the unit square in z = 0, one 3x larger than the other.
+    v = np.array([[0, 0, 0], [3, 0, 0], [3, 1, 0], [0, 1, 0]], dtype=float)
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    p = sample_mesh_surface(v, f, 20000, seed=1)
+    assert p.shape == (20000, 3)
+    np.testing.assert_array_equal(p, sample_mesh_surface(v, f, 20000, seed=1))
+    assert np.all((p[:, 0] >= 0) & (p[:, 0] <= 3) & (p[:, 1] >= 0) & (p[:, 1] <= 1))
+    # Uniform over the rectangle: the mean is its centre, a third of the points lie in x < 1.
+    np.testing.assert_allclose(p[:, :2].mean(axis=0), [1.5, 0.5], atol=0.02)
+    assert np.mean(p[:, 0] < 1) == pytest.approx(1 / 3, abs=0.02)
+    assert sample_mesh_surface(np.zeros((0, 3)), np.zeros((0, 3), int), 10).shape == (0, 3)
+    with pytest.raises(InputDataError):
+        sample_mesh_surface(v, np.array([[0, 1, 9]]), 5)
+
+
+def test_shape_error_band_and_truth_forms():
+    g = Grid.from_bounds((-2, -2), (2, 2), 0.01)
+    pts = g.points()
+    r = np.linalg.norm(pts, axis=1)
+    # An estimate whose zero set is the circle of radius 1.1 around a true circle of radius 1.
+    mean = r - 1.1
+    truth_fn = lambda p: np.linalg.norm(p, axis=1) - 1.0  # noqa: E731
+    e = shape_error(mean, pts, truth_fn, band=0.01)
+    assert e == pytest.approx(0.1, abs=0.005)
+    e_samples = shape_error(mean, pts, circle(1.0, 20000), band=0.01)
+    assert e_samples == pytest.approx(e, abs=1e-3)
+    # Only the band counts: an error far from the band changes nothing.
+    mean2 = mean.copy()
+    mean2[r > 1.8] = 5.0
+    assert shape_error(mean2, pts, truth_fn) == e
+    assert np.isnan(shape_error(np.ones_like(mean), pts, truth_fn))
+    with pytest.raises(InputDataError):
+        shape_error(mean[:-1], pts, truth_fn)
+
+
+def test_distance_to_rejects_wrong_dims():
+    with pytest.raises(InputDataError):
+        distance_to(np.zeros((5, 3)), np.zeros((2, 2)))
+
+
+def test_false_positive_clarity_hand_case():
+    X = np.array([[0, 0], [0.3, 0], [0, 0.4], [5, 5], [5.2, 5], [9, 9], [0.1, 0.1]], dtype=float)
+    u = np.array([8.0, 1.0, 3.0, 2.0, 4.0, 1.0, 100.0])
+    outlier = np.array([True, False, False, True, False, True, False])
+    normal = np.array([False, True, True, False, True, False, False])  # row 6: a pair's interior
+    c = false_positive_clarity(X, u, outlier, normal=normal, radius=0.5)
+    # o=0: normal neighbours rows 1, 2 -> mean 2 / 8; o=3: row 4 -> 4 / 2; o=5: none -> skipped.
+    np.testing.assert_allclose(c.per_outlier[:2], [0.25, 2.0])
+    assert np.isnan(c.per_outlier[2]) and c.n_skipped == 1
+    assert c.mean == pytest.approx(1.125)
+    # Default normal = not outlier: row 6 then joins o=0's neighbours.
+    c2 = false_positive_clarity(X, u, outlier, radius=0.5)
+    assert c2.per_outlier[0] == pytest.approx((1 + 3 + 100) / 3 / 8)
+    with pytest.raises(InputDataError, match="u must be"):
+        false_positive_clarity(X, -u, outlier)
+
+
+def test_phantom_length_counts_only_far_contour():
+    true_circle = lambda p: np.linalg.norm(p, axis=1) - 1.0  # noqa: E731
+    near = circle(1.05)  # within 0.1 m of the truth
+    far = circle(0.2, center=(2.5, 0.0))  # a phantom blob 1.3..1.7 m away
+    straddling = np.array([[1.0, 0.0], [1.4, 0.0]])  # 0.1 m of it is near, 0.3 m is far
+    assert phantom_length([near], true_circle, threshold=0.1) == 0.0
+    assert phantom_length([far], true_circle) == pytest.approx(2 * np.pi * 0.2, rel=1e-4)
+    assert phantom_length([straddling], true_circle, threshold=0.1, step=0.001) == pytest.approx(
+        0.3, abs=2e-3
+    )
+    assert phantom_length([], true_circle) == 0.0
