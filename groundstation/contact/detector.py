@@ -29,6 +29,7 @@ from groundstation.contact.settings import ContactSettings, G
 
 LABEL_INSIDE, LABEL_SURFACE, LABEL_OUTSIDE = -1.0, 0.0, 1.0
 
+
 def earth_acceleration(specific_force_frd, quaternion_frd_ned) -> np.ndarray:
     """Gravity-compensated acceleration in the station's world frame (ENU, z up), m/s².
 
@@ -179,7 +180,8 @@ class ContactDetector:
         self.last_accel_g = g
         out: list[Observation] = []
 
-        if self._event is None and g > s.threshold_g and t_ns >= self._refractory_until:
+        armed = self._filter.ready and t_ns >= self._refractory_until
+        if self._event is None and g > s.threshold_g and armed:
             self._event = ContactEvent(self._next_event_id, t_ns, position=pos)
             self._next_event_id += 1
             self.stats.contacts += 1

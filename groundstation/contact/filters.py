@@ -32,10 +32,17 @@ class MovingAverage:
         self.reset_gap_ns = int(round(reset_gap_s * 1e9))
         self._buf: collections.deque[tuple[int, np.ndarray]] = collections.deque()
         self._sum = np.zeros(3)
+        self._t_start: int | None = None
+        self.ready = False
 
     def update(self, t_ns: int, v: np.ndarray) -> np.ndarray:
         if self._buf and t_ns - self._buf[-1][0] > self.reset_gap_ns:
             self.reset()
+        if self._t_start is None:
+            self._t_start = t_ns
+        # Until a whole window has been seen the average is of too few samples (the first one
+        # passes unfiltered): the detector must not arm on it.
+        self.ready = t_ns - self._t_start >= self.window_ns
         self._buf.append((t_ns, v))
         self._sum = self._sum + v
         while self._buf and self._buf[0][0] <= t_ns - self.window_ns:
@@ -47,6 +54,8 @@ class MovingAverage:
     def reset(self) -> None:
         self._buf.clear()
         self._sum = np.zeros(3)
+        self._t_start = None
+        self.ready = False
 
 
 class Butterworth2:
@@ -70,6 +79,9 @@ class Butterworth2:
         self._t_prev: int | None = None
         self._x = [np.zeros(3), np.zeros(3)]
         self._y = [np.zeros(3), np.zeros(3)]
+        self._t_start: int | None = None
+        self.settle_ns = int(2e9 / self.cutoff_hz)  # about two time constants
+        self.ready = False
 
     def _design(self, dt: float) -> None:
         fs = 1.0 / dt
@@ -85,12 +97,14 @@ class Butterworth2:
 
     def update(self, t_ns: int, v: np.ndarray) -> np.ndarray:
         if self._t_prev is None or t_ns - self._t_prev > self.reset_gap_ns:
-            self._t_prev = t_ns
+            self._t_prev = self._t_start = t_ns
+            self.ready = False
             self._x = [v.copy(), v.copy()]
             self._y = [v.copy(), v.copy()]  # start at steady state: no start-up transient
             return v.copy()
         dt = max((t_ns - self._t_prev) * 1e-9, 1e-6)
         self._t_prev = t_ns
+        self.ready = t_ns - self._t_start >= self.settle_ns
         if self._dt is None or abs(dt - self._dt) > 0.2 * self._dt:
             self._design(dt)
         b, a = self._coef
@@ -101,12 +115,14 @@ class Butterworth2:
 
     def reset(self) -> None:
         self._t_prev = None
+        self.ready = False
 
 
 class Passthrough:
     """No filtering (for measurements that show why a filter is needed)."""
 
     name = "none"
+    ready = True
 
     def update(self, t_ns: int, v: np.ndarray) -> np.ndarray:
         return v

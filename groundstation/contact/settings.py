@@ -23,7 +23,11 @@ class ContactSettings:
     cutoff_hz : float
         Butterworth cutoff frequency, Hz.
     threshold_g : float
-        Contact threshold a0 on |a|, in G (paper: 0.6 G).
+        Contact threshold a0 on the filtered |a|, in G. The paper's 0.6 G fires 87 times a
+        minute on the real contact-free aggressive flights (their manoeuvres reach 0.6 G of
+        real acceleration; filtered peaks 0.98 G), while simulated touches peak above 3 G
+        (5th percentile): 1.2 G leaves no false contact on the real flights, keeps recall 1.0
+        and has 2.5x headroom below touches (``groundstation bench detector``).
     release_ratio : float
         Hysteresis: a contact ends when |a| falls below ``release_ratio * threshold_g``.
     refractory_s : float
@@ -44,7 +48,7 @@ class ContactSettings:
     filter: Literal["moving_average", "butterworth2", "none"] = "moving_average"
     window_s: float = 0.05
     cutoff_hz: float = 8.0
-    threshold_g: float = 0.6
+    threshold_g: float = 1.2
     release_ratio: float = 0.8
     refractory_s: float = 0.25
     contact_rate_hz: float = 25.0

@@ -99,7 +99,7 @@ def test_hysteresis_keeps_a_noisy_contact_as_one_event():
     mags = 0.62 + 0.05 * rng.standard_normal(120)  # hovers around the 0.6 G threshold
     a = np.zeros((400, 3))
     a[50:170, 0] = mags * G
-    det = ContactDetector(ContactSettings(filter="none"))
+    det = ContactDetector(ContactSettings(filter="none", threshold_g=0.6))
     run(det, a)
     assert det.stats.contacts == 1
 
@@ -108,10 +108,10 @@ def test_refractory_time_merges_a_double_bump():
     a = pulse(40, 10, 0, [1.2, 0, 0])
     gap = np.zeros((20, 3))  # 100 ms apart: inside the 250 ms refractory time
     a = np.vstack([a, gap, pulse(0, 10, 200, [1.2, 0, 0])])
-    det = ContactDetector(ContactSettings(filter="none"))
+    det = ContactDetector(ContactSettings(filter="none", threshold_g=0.6))
     run(det, a)
     assert det.stats.contacts == 1
-    det2 = ContactDetector(ContactSettings(filter="none", refractory_s=0.0))
+    det2 = ContactDetector(ContactSettings(filter="none", threshold_g=0.6, refractory_s=0.0))
     run(det2, a)
     assert det2.stats.contacts == 2
 
@@ -122,9 +122,9 @@ def test_vibration_fires_unfiltered_but_not_through_the_moving_average():
     # propeller-like vibration: 0.5 G at 90 Hz plus 0.25 G broadband noise
     vib = 0.5 * G * np.sin(2 * np.pi * 90 * t)[:, None] * np.array([0.6, 0.3, 0.74])
     vib = vib + 0.25 * G * rng.standard_normal((2000, 3))
-    raw = ContactDetector(ContactSettings(filter="none", refractory_s=0.0))
+    raw = ContactDetector(ContactSettings(filter="none", threshold_g=0.6, refractory_s=0.0))
     run(raw, vib)
-    filt = ContactDetector(ContactSettings())
+    filt = ContactDetector(ContactSettings(threshold_g=0.6))
     run(filt, vib)
     assert raw.stats.contacts > 20
     assert filt.stats.contacts == 0
@@ -141,15 +141,15 @@ def test_external_points_follow_the_data_clock_at_half_a_hertz():
 
 def test_no_external_points_right_after_a_contact():
     det = ContactDetector(ContactSettings(quiet_s=1.0, external_rate_hz=50.0))
-    obs = run(det, pulse(0, 20, 400, [1.0, 0, 0]))
-    ext_times = [o.t_ns for o in obs if o.label == 1.0]
-    end = det.events[0].t_end_ns
-    assert ext_times and min(ext_times) >= end + 1_000_000_000 - DT
+    obs = run(det, pulse(20, 20, 400, [2.0, 0, 0]))
+    start, end = det.events[0].t_start_ns, det.events[0].t_end_ns
+    after = [o.t_ns for o in obs if o.label == 1.0 and o.t_ns > start]
+    assert after and min(after) >= end + 1_000_000_000 - DT
 
 
 def test_missing_pose_is_counted_and_bad_samples_rejected():
     det = ContactDetector(ContactSettings(filter="none"))
-    obs = run(det, pulse(10, 20, 10, [1.0, 0, 0]), position=None)
+    obs = run(det, pulse(10, 20, 10, [2.0, 0, 0]), position=None)
     assert obs == [] and det.stats.contacts == 1 and det.stats.no_pose > 0
     det2 = ContactDetector()
     assert det2.update(0, [np.nan, 0, 0], np.zeros(3)) == []
@@ -184,3 +184,15 @@ def test_moving_average_resets_after_a_dropout():
     f.update(0, np.array([10.0, 0, 0]))
     out = f.update(500_000_000, np.array([0.0, 0, 0]))
     np.testing.assert_allclose(out, 0)
+
+
+@pytest.mark.parametrize("name", ["moving_average", "butterworth2"])
+def test_no_contact_before_the_filter_has_settled(name):
+    # The first sample passes a filter unfiltered: a spike there (or right after a dropout)
+    # must not start a contact (it did on a real flight: a 1.5 G 'contact' at t = 0).
+    det = ContactDetector(ContactSettings(filter=name))
+    run(det, pulse(0, 2, 300, [3.0, 0, 0]))
+    assert det.stats.contacts == 0
+    det2 = ContactDetector(ContactSettings(filter=name))
+    run(det2, pulse(200, 30, 300, [3.0, 0, 0]))
+    assert det2.stats.contacts == 1
