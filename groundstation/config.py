@@ -14,6 +14,7 @@ import typing
 from pathlib import Path
 from typing import Any
 
+from groundstation.acquisition.session import AcquisitionSettings
 from groundstation.contact.settings import ContactSettings
 from groundstation.errors import ConfigError
 from groundstation.mapping.settings import MappingSettings, SurfaceSettings
@@ -24,6 +25,7 @@ from groundstation.pilot.settings import PilotSettings
 class Config:
     """The whole station's configuration; one section per stage."""
 
+    acquisition: AcquisitionSettings = AcquisitionSettings()
     contact: ContactSettings = ContactSettings()
     mapping: MappingSettings = MappingSettings()
     surface: SurfaceSettings = SurfaceSettings()

@@ -2,7 +2,11 @@
 
 groundstation sitl [--scene NAME|FILE] [--link pty|udp://HOST:PORT] [--mocap udp://HOST:PORT]
                    [--pilot script:NAME|manual] [--speed X] [--seed N] [--duration SECONDS]
-                   [--truth FILE]
+                   [--truth FILE] [--record LOG.mcap]
+
+With ``--speed max --record LOG.mcap`` no transport is opened: the run is written straight to an
+MCAP recording in the station's layout, with simulated receive times and the truth embedded
+(:mod:`groundstation.acquisition.sim_recording`).
 """
 
 from __future__ import annotations
@@ -81,6 +85,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="PER_MIN",
         help="gusts per minute (false-positive contacts)",
     )
+    parser.add_argument(
+        "--record",
+        type=Path,
+        default=None,
+        metavar="LOG.mcap",
+        help="with --speed max: write the session straight to this recording (no transports)",
+    )
     parser.add_argument("--mocap-up", choices=("y", "z"), default="y", help="Motive up axis")
     parser.add_argument(
         "--mocap-drop",
@@ -118,13 +129,21 @@ def _run(args: argparse.Namespace) -> int:
     if not 0.0 <= args.mocap_drop <= 1.0:
         raise BridgeError(f"--mocap-drop {args.mocap_drop}: must be within 0..1")
     vs = VehicleSettings(gusts=GustParams(rate_per_min=max(0.0, args.gust_rate)))
+    if args.record is not None and math.isfinite(args.speed):
+        raise BridgeError(
+            "--record writes the simulation straight to a file and needs --speed max",
+            hint="to record a paced session, run 'groundstation record' against the SITL",
+        )
     mocap = MocapSettings(
-        rate=MocapSettings().rate if args.mocap else 0.0,  # no mocap sink: do not simulate it
+        # no mocap sink: do not simulate it (a recording always holds mocap)
+        rate=MocapSettings().rate if args.mocap or args.record else 0.0,
         up=args.mocap_up,
         drop_probability=args.mocap_drop,
         position_noise=max(0.0, args.mocap_noise),
     )
     sim = Simulation(scene, pilot, args.seed, args.duration, vs, mocap)
+    if args.record is not None:
+        return _record(args, sim)
 
     link = open_transport(args.link)
     mocap_tx = UdpTransport(args.mocap, receive=False) if args.mocap else None
@@ -191,6 +210,56 @@ def _run(args: argparse.Namespace) -> int:
     print(
         f"sitl stopped ({why}) after {sim.vehicle.t:.2f} s simulated in {wall:.2f} s wall; "
         f"pty/udp dropped {link.stats.frames_dropped} frames",
+        file=sys.stderr,
+        flush=True,
+    )
+    return 0
+
+
+def _stop_after_script(args: argparse.Namespace, sim: Simulation):
+    """Stop rule without a duration: a script ends 2 s (simulated) after it is done."""
+    script_end: list[float] = []
+
+    def stop() -> bool:
+        if args.duration is None and args.pilot not in ("manual", "script:hover"):
+            if sim.vehicle.pilot_done:
+                if not script_end:
+                    script_end.append(sim.vehicle.t)
+                return sim.vehicle.t > script_end[0] + 2.0
+        return False
+
+    return stop
+
+
+def _record(args: argparse.Namespace, sim: Simulation) -> int:
+    """``--speed max --record``: the simulation straight into an MCAP recording."""
+    if args.duration is None and args.pilot in ("manual", "script:hover"):
+        raise BridgeError("--record with this pilot needs --duration (it would never end)")
+    from groundstation.acquisition.sim_recording import write_simulation  # station side
+    from groundstation.errors import GroundstationError
+
+    argv = ["groundstation", "sitl", "--scene", args.scene, "--pilot", args.pilot]
+    argv += ["--seed", str(args.seed), "--gust-rate", str(args.gust_rate), "--speed", "max"]
+    if args.duration is not None:
+        argv += ["--duration", str(args.duration)]
+    argv += ["--record", args.record.name]
+    wall0 = time.monotonic()
+    try:
+        stats = write_simulation(
+            sim,
+            str(args.record),
+            seed=args.seed,
+            created_by=" ".join(argv),
+            motive_up=args.mocap_up,
+            stop=_stop_after_script(args, sim),
+        )
+    except GroundstationError as exc:
+        raise BridgeError(exc.message, exc.hint) from exc
+    if args.truth is not None:
+        args.truth.write_text(json.dumps(sim.truth(), indent=1), encoding="utf-8")
+    print(
+        f"sitl recorded {sim.vehicle.t:.2f} s simulated in {time.monotonic() - wall0:.2f} s wall "
+        f"to {args.record}: {stats.messages} messages, {stats.bytes_written / 1e6:.2f} MB",
         file=sys.stderr,
         flush=True,
     )

@@ -169,27 +169,47 @@ _TABLE = [
        {"link": Field("str")}, {"data": _U8},
        "Bytes chunk exactly as read from the firmware link (MAVLink 2, unparsed). "
        "source_ns: station monotonic time of the read; link: the link URI."),
-    _t("raw.natnet", "raw_natnet", 1, "mocap", "lossless", "data",
-       {"sender": Field("str")}, {"data": _U8},
-       "One NatNet UDP datagram as received; sender: 'host:port'."),
+    _t("raw.natnet", "raw_natnet", 2, "mocap", "lossless", "data",
+       {"sender": Field("str"), "natnet_version": Field("str", optional=True),
+        "motive_up": Field("str", optional=True, choices=("y", "z"))}, {"data": _U8},
+       "One NatNet UDP datagram as received; sender: 'host:port'; natnet_version ('4.1') and "
+       "motive_up ('y'/'z') as configured, stored by the recorder as channel metadata."),
     _t("raw.pilot", "raw_pilot", 1, "pilot", "lossless", "data",
        {"device": Field("str")}, {"data": _U8},
        "Linux joystick events as read (concatenated 8-byte js_event records)."),
+    # Detector time axis (t_station_ns, station monotonic ns): see acquisition/decoders.py.
+    # t_station_ns is optional only because older tests publish these topics with an empty
+    # payload (and pin Header("imu_sample", 1, ...)); the station's decoders always set it.
     _t("samples.imu", "imu_sample", 1, "link", "lossless", "data",
-       {}, {"accel_mps2": _VEC3, "gyro_radps": _VEC3},
+       {"t_station_ns": Field("int", optional=True)},
+       {"accel_mps2": _VEC3, "gyro_radps": _VEC3},
        "One IMU sample in the body frame (FRD): specific force m/s^2, angular rate rad/s. "
-       "source_ns: firmware time of the sample."),
-    _t("samples.attitude", "attitude_sample", 1, "link", "lossless", "data",
-       {}, {"q_wxyz": _QUAT, "rates_radps": Array(_F8, (3,), optional=True)},
-       "Attitude: unit quaternion (w, x, y, z) rotating body FRD to earth NED."),
-    _t("samples.pose", "pose_sample", 1, "mocap", "lossless", "data",
-       {"body_id": Field("int"), "valid": Field("bool")},
+       "source_ns: firmware time of the sample; recv_ns: station receive time of its bytes; "
+       "t_station_ns: firmware time mapped to the station clock by TIMESYNC (receive time "
+       "before the first round trip)."),
+    _t("samples.attitude", "attitude_sample", 2, "link", "lossless", "data",
+       {"t_station_ns": Field("int", optional=True)},
+       {"q_wxyz": _QUAT, "rates_radps": Array(_F8, (3,), optional=True)},
+       "Attitude: unit quaternion (w, x, y, z) rotating body FRD to earth NED; times as for "
+       "samples.imu."),
+    _t("samples.pose", "pose_sample", 2, "mocap", "lossless", "data",
+       {"body_id": Field("int"), "valid": Field("bool"),
+        "t_station_ns": Field("int", optional=True)},
        {"position_m": _VEC3, "q_wxyz": _QUAT},
-       "Mocap rigid-body pose in the world frame (m, quaternion w-first). source_ns: mocap time."),
-    _t("link.health", "link_health", 1, "link", "latest", "state",
+       "Mocap rigid-body pose in the world frame (m, quaternion w-first; NaN when not valid). "
+       "source_ns: mocap time; recv_ns: station receive time; t_station_ns: receive time minus "
+       "the configured mocap latency (already compensated: align with latency 0)."),
+    _t("link.health", "link_health", 2, "link", "latest", "state",
        {"connected": Field("bool"), "rx_bytes": Field("int"), "rx_messages": Field("int"),
-        "bad_frames": Field("int"), "last_heartbeat_ns": Field("int", nullable=True)}, {},
-       "Firmware link counters (cumulative) and the station time of the last HEARTBEAT."),
+        "bad_frames": Field("int"), "last_heartbeat_ns": Field("int", nullable=True),
+        "lost_frames": Field("int", optional=True),
+        "garbage_bytes": Field("int", optional=True),
+        "timesync_offset_ns": Field("int", optional=True, nullable=True),
+        "timesync_rtt_ns": Field("int", optional=True, nullable=True),
+        "rates_hz": Field("dict", optional=True)}, {},
+       "Firmware link counters (cumulative) and the station time of the last HEARTBEAT; "
+       "lost_frames (MAVLink sequence gaps), garbage_bytes, the TIMESYNC offset "
+       "(vehicle - station, ns) and RTT, and message rates (Hz) over the last window."),
     _t("contact.event", "contact_event", 1, "detector", "lossless", "event",
        {"id": Field("int"), "state": Field("str", choices=("begin", "end")),
         "peak_g": Field("float")},

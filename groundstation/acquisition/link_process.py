@@ -1,0 +1,287 @@
+"""The link process: the one owner of the firmware link (serial:// or udp://).
+
+``python -m groundstation.acquisition.link_process --session ID --link URI [--wait-subscribers N]``
+
+- waits (XPUB ready handshake) until ``N`` subscribers hold its data topics, then opens the link;
+- publishes every chunk read on ``raw.mavlink`` (source and receive time = the read time), the
+  samples :class:`~groundstation.acquisition.decoders.MavlinkStreamDecoder` makes of it,
+  ``link.health`` and ``status`` every ``health_period_s``;
+- asks for HIGHRES_IMU and ATTITUDE_QUATERNION at the configured rates (SET_MESSAGE_INTERVAL) at
+  start, when the vehicle is first heard and after every reconnect; pings TIMESYNC and sends a
+  GCS HEARTBEAT every second; answers the vehicle's own TIMESYNC requests;
+- forwards ``pilot.command`` as MANUAL_CONTROL while ``enabled`` (nothing is sent otherwise, so
+  the vehicle's own failsafe acts);
+- reports unplug/replug (link events) on ``log`` and ``status``; bad bytes are counted by the
+  decoder, never raised. SIGINT/SIGTERM stop it cleanly (exit 0).
+
+One thread: the loop reads the link with a short timeout, so sends are at most ~20 ms late.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+
+import numpy as np
+import zmq
+
+from firmware_bridge.errors import BridgeError
+from firmware_bridge.link import Link, open_link
+from firmware_bridge.mavlink import MavlinkCodec
+from firmware_bridge.mavlink.messages import (
+    CommandAck,
+    Heartbeat,
+    ManualControl,
+    Record,
+    SetMessageInterval,
+    Timesync,
+)
+from groundstation.acquisition.decoders import MavlinkStreamDecoder
+from groundstation.acquisition.session import (
+    AcquisitionSettings,
+    RateCounter,
+    Session,
+    StopSignals,
+    add_session_arguments,
+    load_settings,
+    publish_log,
+    session_from_args,
+)
+from groundstation.bus.errors import BusTimeoutError
+from groundstation.bus.pubsub import Publisher, Subscriber
+
+DATA_TOPICS = ("raw.mavlink", "samples.imu", "samples.attitude", "samples.pose")
+TOPICS = (*DATA_TOPICS, "link.health", "status", "log")
+HIGHRES_IMU_ID, ATTITUDE_QUATERNION_ID = 105, 31
+MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, MAV_STATE_ACTIVE = 6, 8, 4
+_READ_TIMEOUT_NS = 20_000_000
+_REPORTED_EVENTS = {
+    "disconnected": "warning",
+    "reconnect_failed": "warning",
+    "reconnected": "info",
+    "read_error": "warning",
+    "write_error": "warning",
+}
+
+
+class LinkProcess:
+    """The loop of the link process (see the module docstring)."""
+
+    def __init__(
+        self,
+        session: Session,
+        link_uri: str,
+        settings: AcquisitionSettings,
+        *,
+        name: str = "link",
+        wait_subscribers: int = 1,
+        context: zmq.Context | None = None,
+    ) -> None:
+        self.session, self.uri, self.settings, self.name = session, link_uri, settings, name
+        self.wait_subscribers = wait_subscribers
+        self.ctx = context or zmq.Context()
+        self.pub = Publisher(topics=TOPICS, context=self.ctx, **session.publisher_kwargs(name))
+        self.sub = Subscriber(
+            session.subscribe_endpoints(exclude=[name]), ["pilot.command"], context=self.ctx
+        )
+        s = settings
+        self.decoder = MavlinkStreamDecoder(
+            s.timesync_window, int(s.timesync_max_rtt_ms * 1e6), int(s.mocap_latency_ms * 1e6)
+        )
+        self.tx = MavlinkCodec(s.system_id, s.component_id)
+        self.link: Link | None = None
+        self.rates = RateCounter()
+        self.state = "starting"
+        self.manual_sent = 0
+        self.commands_rejected = 0
+        self.acks: list[tuple[int, int]] = []
+
+    # -- sending -----------------------------------------------------------------------------
+    def _send(self, record: Record) -> None:
+        assert self.link is not None
+        try:
+            self.link.write(self.tx.encode(record))
+        except BridgeError as exc:  # a value out of range: report, keep going
+            self.commands_rejected += 1
+            publish_log(self.pub, self.name, "warning", f"not sent: {exc.message}")
+
+    def request_streams(self) -> None:
+        """SET_MESSAGE_INTERVAL for HIGHRES_IMU and ATTITUDE_QUATERNION."""
+        s = self.settings
+        for mid, hz in (
+            (HIGHRES_IMU_ID, s.imu_rate_hz),
+            (ATTITUDE_QUATERNION_ID, s.attitude_rate_hz),
+        ):
+            self._send(SetMessageInterval(mid, int(round(1e6 / hz)), s.target_system, 1))
+
+    def on_pilot_command(self, payload: dict) -> None:
+        """Forward one ``pilot.command`` as MANUAL_CONTROL when enabled (else send nothing)."""
+        if not payload.get("enabled"):
+            return
+        self._send(
+            ManualControl(
+                int(payload["x"]),
+                int(payload["y"]),
+                int(payload["z"]),
+                int(payload["r"]),
+                int(payload["buttons"]),
+                self.settings.target_system,
+            )  # fmt: skip
+        )
+        self.manual_sent += 1
+
+    # -- receiving ---------------------------------------------------------------------------
+    def on_chunk(self, data: bytes, recv_ns: int) -> None:
+        """Publish one chunk read at ``recv_ns`` and everything decoded from it."""
+        self.pub.publish(
+            "raw.mavlink",
+            {"link": self.uri},
+            {"data": np.frombuffer(data, np.uint8)},
+            source_ns=recv_ns,
+            recv_ns=recv_ns,
+        )
+        self.rates.add("raw.mavlink")
+        heard_before = self.decoder.vehicle is not None
+        records, samples = self.decoder.feed_records(data, recv_ns)
+        for d in samples:
+            self.pub.publish(d.topic, d.payload, d.arrays, source_ns=d.source_ns, recv_ns=d.recv_ns)
+            self.rates.add(d.topic)
+        for rec in records:
+            if isinstance(rec, Timesync) and rec.tc1 == 0 and rec.system_id != self.tx.system_id:
+                self._send(Timesync(time.monotonic_ns(), rec.ts1))  # the vehicle syncs to us
+            elif isinstance(rec, CommandAck):
+                self.acks.append((rec.command, rec.result))
+        if not heard_before and self.decoder.vehicle is not None:
+            self.request_streams()  # the vehicle may have booted after our first request
+
+    def _report_events(self) -> None:
+        assert self.link is not None
+        for ev in self.link.poll_events():
+            level = _REPORTED_EVENTS.get(ev.kind)
+            if level is None:
+                continue
+            publish_log(self.pub, self.name, level, f"link {ev.kind}: {ev.detail}")
+            if ev.kind == "disconnected":
+                self.state = "disconnected"
+                self._status()
+            elif ev.kind == "reconnected":
+                self.state = "running"
+                self.request_streams()
+                self._status()
+
+    def _connected(self) -> bool:
+        return bool(getattr(self.link, "connected", True)) and self.state != "disconnected"
+
+    def _status(self, now_ns: int | None = None) -> None:
+        now_ns = time.monotonic_ns() if now_ns is None else now_ns
+        self.pub.publish("link.health", self.decoder.health_payload(self._connected()))
+        topics = self.rates.snapshot(now_ns)
+        topics["pilot.command"] = {"manual_control_sent": self.manual_sent}
+        self.pub.publish(
+            "status",
+            {
+                "process": self.name,
+                "state": self.state,
+                "topics": topics,
+                "text": f"{self.uri}: {self.decoder.health.summary()}",
+            },
+        )
+
+    # -- loop --------------------------------------------------------------------------------
+    def run(self, stop: StopSignals | None = None, max_s: float | None = None) -> int:
+        """Run until SIGINT/SIGTERM (or ``max_s`` seconds); returns the exit code."""
+        stop = stop if stop is not None else StopSignals()
+        try:
+            try:
+                self.pub.wait_for_subscribers(
+                    self.wait_subscribers, DATA_TOPICS, self.settings.subscriber_timeout_s
+                )
+            except BusTimeoutError as exc:
+                publish_log(self.pub, self.name, "warning", f"starting anyway: {exc.message}")
+            try:
+                self.link = open_link(self.uri)
+            except BridgeError as exc:
+                self.state = "failed"
+                publish_log(self.pub, self.name, "error", exc.message, exc.hint)
+                self.pub.publish(
+                    "status",
+                    {"process": self.name, "state": "failed", "topics": {}, "text": exc.message},
+                )
+                return 3
+            self.state = "running"
+            self._loop(stop, max_s)
+            return 0
+        finally:
+            self.close()
+
+    def _loop(self, stop: StopSignals, max_s: float | None) -> None:
+        s = self.settings
+        ping_ns, health_ns = int(s.timesync_period_s * 1e9), int(s.health_period_s * 1e9)
+        t0 = now = time.monotonic_ns()
+        end = None if max_s is None else t0 + int(max_s * 1e9)
+        self.request_streams()
+        next_ping, next_beat, next_health = now, now, now + health_ns
+        link = self.link
+        assert link is not None
+        while not stop and (end is None or now < end):
+            if now >= next_ping:
+                self._send(Timesync(0, time.monotonic_ns()))
+                next_ping = max(next_ping + ping_ns, now)
+            if now >= next_beat:
+                self._send(Heartbeat(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE))
+                next_beat = max(next_beat + 1_000_000_000, now)
+            if now >= next_health:
+                self._status(now)
+                next_health = max(next_health + health_ns, now)
+            wait = min(_READ_TIMEOUT_NS, next_ping - now, next_beat - now, next_health - now)
+            data = link.read(max(0, wait) / 1e9)
+            recv_ns = time.monotonic_ns()
+            if data:
+                self.on_chunk(data, recv_ns)
+            while (env := self.sub.recv(0)) is not None:
+                self.on_pilot_command(env.payload)
+            self._report_events()
+            now = time.monotonic_ns()
+
+    def close(self) -> None:
+        if self.link is not None:
+            self.link.close()
+            self.link = None
+        self.state = "stopped"
+        try:
+            self._status()
+        except Exception:  # noqa: BLE001 - best effort at shutdown
+            pass
+        self.sub.close()
+        self.pub.close()
+        self.ctx.term()
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m groundstation.acquisition.link_process")
+    add_session_arguments(p)
+    p.add_argument("--link", required=True, help="serial:///dev/ttyUSB0?baud=921600 or udp://...")
+    p.add_argument("--name", default="link", help="process name (its endpoint in the session)")
+    p.add_argument("--wait-subscribers", type=int, default=1, help="subscribers to wait for")
+    p.add_argument("--max-s", type=float, default=None, help="stop after this many seconds")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point (see the module docstring)."""
+    args = _parser().parse_args(argv)
+    stop = StopSignals()
+    proc = LinkProcess(
+        session_from_args(args),
+        args.link,
+        load_settings(args.config, args.set),
+        name=args.name,
+        wait_subscribers=args.wait_subscribers,
+    )
+    return proc.run(stop, args.max_s)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,294 @@
+"""One acquisition session: where each process binds on the bus, and the acquisition settings.
+
+Endpoint scheme
+---------------
+A session is a directory ``/tmp/gs-<session>/`` (``<session>`` is a short id; the ipc path limit
+is 107 bytes). Every *publishing* process binds::
+
+    ipc:///tmp/gs-<session>/<process>.sock          lossless topics (and the only socket when
+                                                    a process publishes one policy)
+    ipc:///tmp/gs-<session>/<process>.sock.latest   latest-value topics (status, link.health)
+    ipc:///tmp/gs-<session>/<process>.flow          credit back channel (replay at speed=max)
+
+and every subscriber connects its SUB sockets to the ``.sock`` / ``.sock.latest`` endpoints of
+every publishing process of the session (:meth:`Session.subscribe_endpoints`). ZeroMQ retries an
+ipc connect until the path is bound, so start order does not matter; publishers call
+``Publisher.wait_for_subscribers`` (the XPUB ready handshake) on their data topics before sending
+the first sample, so nothing is lost at start. The ``live`` and ``replay`` commands reuse this
+module: they only add process names.
+
+Settings
+--------
+:class:`AcquisitionSettings` is a frozen dataclass loaded through ``groundstation.config``'s
+coercion from a ``[acquisition]`` TOML table and ``--set acquisition.KEY=VALUE`` overrides
+(:func:`load_settings`), until ``Config`` gains an ``acquisition`` section.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import secrets
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Literal
+
+from groundstation.errors import ConfigError
+
+#: Publishing processes of a live/record session, in start order.
+LIVE_PUBLISHERS: tuple[str, ...] = ("link", "mocap", "recorder")
+#: Publishing process of a replay session.
+REPLAY_PUBLISHER = "replay"
+_IPC_MAX = 107
+
+
+@dataclasses.dataclass(frozen=True)
+class AcquisitionSettings:
+    """Settings of the acquisition processes and decoders (units in the names).
+
+    Attributes
+    ----------
+    imu_rate_hz, attitude_rate_hz : float
+        Rates requested with MAV_CMD_SET_MESSAGE_INTERVAL for HIGHRES_IMU / ATTITUDE_QUATERNION.
+    timesync_period_s : float
+        Period of the station's TIMESYNC pings.
+    health_period_s : float
+        Period of ``link.health`` and ``status`` messages (replay: of log time).
+    timesync_window : int
+        Minimum-RTT window of the TIMESYNC filter (``TimesyncEstimator``).
+    timesync_max_rtt_ms : float
+        Round trips longer than this are rejected.
+    mocap_latency_ms : float
+        Mocap pipeline latency subtracted from the pose receive time (``t_station_ns``).
+    natnet_version : str
+        NatNet bitstream version, "3.0" .. "4.1" (a recording's channel metadata wins on replay).
+    motive_up : {"y", "z"}
+        Motive up axis.
+    quaternion_order : {"xyzw", "wxyz"}
+        Order of incoming mocap quaternions (NatNet: "xyzw").
+    system_id, component_id : int
+        The station's MAVLink address.
+    target_system : int
+        Vehicle system id for MANUAL_CONTROL and commands.
+    subscriber_timeout_s : float
+        How long a publisher waits for its subscribers before it starts anyway (with a warning).
+    replay_flow_window : int
+        Credit window of the replay source at speed=max (messages per topic).
+    """
+
+    imu_rate_hz: float = 200.0
+    attitude_rate_hz: float = 200.0
+    timesync_period_s: float = 1.0
+    health_period_s: float = 1.0
+    timesync_window: int = 16
+    timesync_max_rtt_ms: float = 500.0
+    mocap_latency_ms: float = 0.0
+    natnet_version: str = "4.1"
+    motive_up: Literal["y", "z"] = "y"
+    quaternion_order: Literal["xyzw", "wxyz"] = "xyzw"
+    system_id: int = 255
+    component_id: int = 190
+    target_system: int = 1
+    subscriber_timeout_s: float = 20.0
+    replay_flow_window: int = 256
+
+    def __post_init__(self) -> None:
+        for name in ("imu_rate_hz", "attitude_rate_hz", "timesync_period_s", "health_period_s"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"acquisition.{name}={getattr(self, name)!r} must be > 0")
+        if self.mocap_latency_ms < 0:
+            raise ConfigError(f"acquisition.mocap_latency_ms={self.mocap_latency_ms} must be >= 0")
+        natnet_version_tuple(self.natnet_version)
+        if self.timesync_window < 1 or self.replay_flow_window < 1:
+            raise ConfigError("acquisition.timesync_window and replay_flow_window must be >= 1")
+
+    @property
+    def natnet_version_tuple(self) -> tuple[int, int]:
+        return natnet_version_tuple(self.natnet_version)
+
+
+def natnet_version_tuple(text: str) -> tuple[int, int]:
+    """``"4.1"`` -> ``(4, 1)``; raises :class:`ConfigError` naming the bad value."""
+    try:
+        major, minor = (int(p) for p in str(text).split("."))
+    except ValueError:
+        raise ConfigError(
+            f"natnet_version {text!r} is not MAJOR.MINOR", hint="e.g. 4.1 (Motive 3.x)"
+        ) from None
+    return major, minor
+
+
+def load_settings(
+    path: str | Path | None = None, overrides: Sequence[str] = ()
+) -> AcquisitionSettings:
+    """Load :class:`AcquisitionSettings` from the ``[acquisition]`` table and ``acquisition.*``
+    overrides; the other tables and overrides are checked by ``groundstation.config``.
+
+    Raises
+    ------
+    ConfigError
+        Unknown key, bad value, unreadable file.
+    """
+    from groundstation.config import load_config  # lazy: config imports this module
+
+    return load_config(path, overrides).acquisition
+
+
+# -- endpoints -----------------------------------------------------------------------------------
+
+
+def new_session_id() -> str:
+    """A short random session id (8 hex digits)."""
+    return secrets.token_hex(4)
+
+
+@dataclasses.dataclass(frozen=True)
+class Session:
+    """Endpoints of one session (see the module docstring).
+
+    Parameters
+    ----------
+    session_id : str
+        Short id; the directory is ``<root>/gs-<session_id>``.
+    publishers : tuple of str
+        Names of the publishing processes subscribers connect to.
+    root : str
+        Parent directory of the session directory (default ``/tmp``).
+    """
+
+    session_id: str
+    publishers: tuple[str, ...] = LIVE_PUBLISHERS
+    root: str = "/tmp"
+
+    def __post_init__(self) -> None:
+        if not self.session_id or "/" in self.session_id:
+            raise ConfigError(f"bad session id {self.session_id!r}: use letters and digits")
+        longest = max(self.publishers, key=len, default="x")
+        if len(self.endpoint(longest, "latest")) - len("ipc://") > _IPC_MAX:
+            raise ConfigError(
+                f"session directory {self.directory!r} is too long for ipc endpoints "
+                f"(<= {_IPC_MAX} bytes)",
+                hint="use a shorter --session root (e.g. /tmp)",
+            )
+
+    @property
+    def directory(self) -> str:
+        return os.path.join(self.root, f"gs-{self.session_id}")
+
+    def ensure_directory(self) -> str:
+        """Create the session directory (idempotent) and return it."""
+        os.makedirs(self.directory, mode=0o700, exist_ok=True)
+        return self.directory
+
+    def cleanup(self) -> None:
+        """Remove the session directory (after every process of the session has exited)."""
+        import shutil
+
+        shutil.rmtree(self.directory, ignore_errors=True)
+
+    def endpoint(self, process: str, policy: Literal["lossless", "latest"] = "lossless") -> str:
+        """Bind endpoint of ``process`` for one drop policy."""
+        base = f"ipc://{self.directory}/{process}.sock"
+        return base if policy == "lossless" else base + ".latest"
+
+    def flow_endpoint(self, process: str) -> str:
+        """Credit back channel of ``process`` (only publishers with flow control bind it)."""
+        return f"ipc://{self.directory}/{process}.flow"
+
+    def subscribe_endpoints(self, exclude: Iterable[str] = ()) -> list[str]:
+        """Every publisher endpoint of the session (both policies), minus ``exclude``."""
+        skip = set(exclude)
+        out: list[str] = []
+        for name in self.publishers:
+            if name not in skip:
+                out += [self.endpoint(name), self.endpoint(name, "latest")]
+        return out
+
+    def publisher_kwargs(self, process: str) -> dict[str, str]:
+        """``endpoint`` / ``latest_endpoint`` keyword arguments for ``Publisher``."""
+        self.ensure_directory()
+        return {
+            "endpoint": self.endpoint(process),
+            "latest_endpoint": self.endpoint(process, "latest"),
+        }
+
+    def as_args(self) -> list[str]:
+        """Command-line arguments that rebuild this session in a worker process."""
+        return [
+            "--session", self.session_id, "--session-root", self.root,
+            "--publishers", ",".join(self.publishers),
+        ]  # fmt: skip
+
+
+def add_session_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--session``, ``--session-root``, ``--config`` and ``--set`` for a worker entry point."""
+    parser.add_argument("--session", required=True, help="session id (see session.py)")
+    parser.add_argument("--session-root", default="/tmp", help="parent of the session directory")
+    parser.add_argument("--publishers", default=",".join(LIVE_PUBLISHERS),
+                        help="comma-separated publishing processes of the session")  # fmt: skip
+    parser.add_argument("--config", default=None, help="TOML configuration file")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a setting"
+    )
+
+
+def session_from_args(args: argparse.Namespace) -> Session:
+    """The :class:`Session` described by :func:`add_session_arguments` options."""
+    pubs = tuple(p for p in args.publishers.split(",") if p)
+    return Session(args.session, pubs, args.session_root)
+
+
+# -- process shell helpers -----------------------------------------------------------------------
+
+
+class StopSignals:
+    """Turns SIGINT/SIGTERM into a flag the process loop checks (``bool(stop)``)."""
+
+    def __init__(self) -> None:
+        import signal
+
+        self.received: list[str] = []
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._on_signal)
+
+    def _on_signal(self, signum: int, _frame: object) -> None:
+        import signal
+
+        self.received.append(signal.Signals(signum).name)
+
+    def __bool__(self) -> bool:
+        return bool(self.received)
+
+
+class RateCounter:
+    """Messages per topic, and their rate since the previous :meth:`snapshot` (caller's clock)."""
+
+    def __init__(self) -> None:
+        self.total: dict[str, int] = {}
+        self._last: dict[str, int] = {}
+        self._last_ns: int | None = None
+
+    def add(self, topic: str, n: int = 1) -> None:
+        self.total[topic] = self.total.get(topic, 0) + n
+
+    def snapshot(self, now_ns: int) -> dict[str, dict[str, float]]:
+        """``{topic: {"count": n, "rate_hz": r}}`` with rates over the time since the last call."""
+        dt = None if self._last_ns is None else (now_ns - self._last_ns) / 1e9
+        out = {}
+        for topic, n in sorted(self.total.items()):
+            rate = (n - self._last.get(topic, 0)) / dt if dt else 0.0
+            out[topic] = {"count": n, "rate_hz": round(rate, 2)}
+        self._last, self._last_ns = dict(self.total), now_ns
+        return out
+
+
+def publish_log(pub, process: str, level: str, message: str, hint: str | None = None) -> None:
+    """Put a warning/error on the ``log`` topic (never raises: logging must not kill a loop)."""
+    try:
+        pub.publish("log", {"process": process, "level": level, "message": message, "hint": hint})
+    except Exception:  # noqa: BLE001 - a closed socket at shutdown
+        pass
+    import sys
+
+    print(f"[{process}] {level}: {message}", file=sys.stderr, flush=True)
