@@ -223,7 +223,8 @@ _TABLE = [
     _t("mapper.fit", "mapper_fit", 1, "mapper", "latest", "state",
        {"fit_index": Field("int")},
        {"ids": Array(_INT, ("n",)), "u": Array(_FLOAT, ("n",)), "flags": Array(("|u1",), ("n",))},
-       "Per-observation uncertainty u_i = beta~_i/alpha~_i and flag bits after a refit."),
+       "Per-observation uncertainty u_i = beta~_i/alpha~_i and flag bits after a refit "
+       "(bit 0 = flagged false-positive contact)."),
     _t("mesh", "mesh", 1, "mapper", "latest", "state",
        {"fit_index": Field("int")},
        {"vertices": Array(_FLOAT, ("v", 3)), "triangles": Array(_INT, ("t", 3)),
