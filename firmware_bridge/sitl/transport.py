@@ -100,8 +100,12 @@ class PtyTransport:
             self.flush()
         # Closing a pty master discards what the station has not read yet, so also wait for the
         # kernel queue to empty. Shutdown only: a short sleep loop is fine here.
-        while self._unread() > 0 and time.monotonic() < end:
-            time.sleep(0.005)
+        # The kernel moves written bytes to the reader's queue asynchronously (the pty flip
+        # buffer), so an empty queue must be seen several times in a row.
+        quiet = 0
+        while quiet < 5 and time.monotonic() < end:
+            quiet = quiet + 1 if self._unread() == 0 else 0
+            time.sleep(0.02)
 
     def _unread(self) -> int:
         """Bytes written to the pty that the station side has not read yet."""
