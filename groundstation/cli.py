@@ -20,8 +20,28 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
         "groundstation.bench.paper2d",
         "reproduce the paper's 2D simulation (GPIS vs robust GPIS) with tables and figures",
     ),
+    ("bench", "detector"): (
+        "groundstation.bench.detector",
+        "false contacts per minute on real flights vs recall on simulated touches, per threshold",
+    ),
+    ("bench", "pareto"): (
+        "groundstation.bench.pareto",
+        "speed against accuracy of every mapping method (Pareto chart and table)",
+    ),
+    ("bench", "stability"): (
+        "groundstation.bench.stability",
+        "sweeps where GPIS and robust GPIS break down, and whether failures are detected",
+    ),
     ("config", "show"): ("groundstation.config_cli", "print the effective configuration as TOML"),
+    ("record",): (
+        "groundstation.acquisition.record_cli",
+        "record a live session (link + mocap + recorder under the supervisor) to an MCAP log",
+    ),
     ("sitl",): ("firmware_bridge.sitl.cli", "run the software-in-the-loop vehicle and mocap"),
+    ("view",): (
+        "groundstation.viewer.view_cli",
+        "show the live mesh, flagged contacts and the vehicle (window or --headless PNG/PLY)",
+    ),
     ("import", "csv"): (
         "groundstation.acquisition.importers.cli_csv",
         "convert a CSV IMU recording (e.g. aggressive_flight) into a replayable MCAP log",
