@@ -18,6 +18,9 @@ Rule (:func:`merge_observations`):
   after the old ones.
 
 :class:`ObservationStore` keeps every raw observation (by id) and serves the merged view.
+
+The mapper's default is the radius rule (:class:`StreamingMerger`, :func:`radius_merge`, at the
+end of this module): no cell doubling on voxel boundaries, incremental between refits.
 """
 
 from __future__ import annotations
@@ -260,3 +263,204 @@ class ObservationStore:
     def merged_count(self) -> int:
         """Number of merged cells (training points)."""
         return len(self.training_set())
+
+
+# --------------------------------------------------------------------------- radius merge
+#
+# Voxel cells double where a face lies on a voxel boundary (noise puts its contacts on both
+# sides), and they shift when the voxel follows the learnt length scale. The radius rule has
+# neither problem: leader clustering in time order, per label, where a point joins the nearest
+# existing anchor of its label within ``radius`` and otherwise becomes a new anchor. Anchors are
+# never closer than ``radius`` to each other, so the number of cells on a surface is bounded by
+# its area over ~radius^2 whatever the flight time, and a revisited face adds no cells. Anchors
+# only depend on the past, so a growing session can be processed incrementally
+# (:class:`StreamingMerger`) with the same result as a batch run on the same rows.
+
+_CHUNK = 512  # rows per KD-tree query against the anchors (the rest is a short Python loop)
+
+
+def _leader(P: np.ndarray, radius: float, anchors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Leader clustering of rows ``P`` (n, d) in order, continuing from ``anchors`` (k, d).
+
+    Returns the anchor index of every row (n,) and the updated anchors (k', d).
+    """
+    from scipy.spatial import cKDTree
+
+    n, d = P.shape
+    assign = np.empty(n, dtype=np.int64)
+    r2 = radius * radius
+    for start in range(0, n, _CHUNK):
+        Q = P[start : start + _CHUNK]
+        k = anchors.shape[0]
+        free = np.ones(Q.shape[0], dtype=bool)
+        if k:
+            dist, j = cKDTree(anchors).query(Q, distance_upper_bound=radius)
+            hit = np.isfinite(dist)
+            assign[start : start + Q.shape[0]][hit] = j[hit]
+            free = ~hit
+        rest = np.flatnonzero(free)
+        if rest.size:
+            new = np.empty((rest.size, d))
+            cnt = 0
+            for i in rest:
+                if cnt:
+                    dd = np.sum((new[:cnt] - Q[i]) ** 2, axis=1)
+                    j = int(np.argmin(dd))
+                    if dd[j] <= r2:
+                        assign[start + i] = k + j
+                        continue
+                new[cnt] = Q[i]
+                assign[start + i] = k + cnt
+                cnt += 1
+            anchors = np.vstack([anchors, new[:cnt]])
+    return assign, anchors
+
+
+class StreamingMerger:
+    """Incremental radius merge of a growing session (see the section comment above).
+
+    Parameters
+    ----------
+    radius_m : float
+        Cell radius for contacts and internal points, metres.
+    external_radius_m : float, optional
+        Cell radius for external points (y > 0), metres (default ``radius_m``).
+    suspect_radius_m : float, optional
+        Radius within which suspected false contacts of one label merge among themselves
+        (default ``external_radius_m``): one gust cluster gives one cell per label.
+
+    Notes
+    -----
+    Every row is given an anchor when first seen (``update``); rows are recognised by id, so
+    pass each observation with the same id, position and label every time. Cells are
+    ``(label, anchor, trusted)`` for trusted rows and ``(label, suspect cluster)`` for suspects,
+    so a suspect never shares a cell with a trusted row. Cells are ordered by their first
+    member's time; each cell's position is its members' mean.
+    """
+
+    def __init__(
+        self,
+        radius_m: float,
+        external_radius_m: float | None = None,
+        suspect_radius_m: float | None = None,
+    ) -> None:
+        self.radius_m = _positive("radius_m", radius_m)
+        self.external_radius_m = _positive(
+            "external_radius_m", radius_m if external_radius_m is None else external_radius_m
+        )
+        self.suspect_radius_m = _positive(
+            "suspect_radius_m",
+            self.external_radius_m if suspect_radius_m is None else suspect_radius_m,
+        )
+        self._anchors: dict[float, np.ndarray] = {}
+        self._known = np.zeros(0, dtype=np.int64)  # sorted ids seen so far
+        self._anchor_of = np.zeros(0, dtype=np.int64)  # global anchor key per sorted id
+        self._offset: dict[float, int] = {}  # label -> key offset (keys unique across labels)
+
+    def _key_base(self, label: float) -> int:
+        if label not in self._offset:
+            self._offset[label] = len(self._offset)
+        return self._offset[label]
+
+    def update(
+        self,
+        X: np.ndarray,
+        y: np.ndarray,
+        ids: np.ndarray,
+        t_ns: np.ndarray,
+        suspects: Iterable[int] | np.ndarray = (),
+    ) -> TrainingSet:
+        """Merged view of ALL observations so far (rows not seen before are anchored first).
+
+        Parameters
+        ----------
+        X : (n, d) float64, metres; y : (n,) labels; ids : (n,) int64 unique ids;
+        t_ns : (n,) int64 times, ns; suspects : ids of suspected false contacts.
+
+        Returns
+        -------
+        TrainingSet
+        """
+        X, y, ids, t_ns = _check(X, y, ids, t_ns)
+        n, d = X.shape
+        if np.unique(ids).size != n:
+            raise InputDataError("observation ids must be unique")
+        if n == 0:
+            return merge_observations(X, y, ids, t_ns, self.radius_m)
+        pos = np.searchsorted(self._known, ids)
+        seen = pos < self._known.size
+        seen[seen] = self._known[pos[seen]] == ids[seen]
+        if not seen.all():
+            new = np.flatnonzero(~seen)
+            new = new[np.lexsort((new, t_ns[new]))]  # time order (then row order)
+            keys = np.empty(new.size, dtype=np.int64)
+            for label in np.unique(y[new]):
+                sel = y[new] == label
+                base = self._key_base(float(label))
+                radius = self.external_radius_m if label > 0 else self.radius_m
+                anchors = self._anchors.get(float(label), np.zeros((0, d)))
+                a, self._anchors[float(label)] = _leader(X[new[sel]], radius, anchors)
+                keys[sel] = a * 8 + base  # at most a handful of labels
+            known = np.concatenate([self._known, ids[new]])
+            anchor_of = np.concatenate([self._anchor_of, keys])
+            order = np.argsort(known, kind="stable")
+            self._known, self._anchor_of = known[order], anchor_of[order]
+        key = self._anchor_of[np.searchsorted(self._known, ids)] * 2  # trusted: even keys
+        sus_ids = np.asarray(suspects if isinstance(suspects, np.ndarray) else list(suspects))
+        sus = np.isin(ids, sus_ids.astype(np.int64)) if sus_ids.size else np.zeros(n, bool)
+        if sus.any():
+            rows = np.flatnonzero(sus)
+            rows = rows[np.lexsort((rows, t_ns[rows]))]
+            for label in np.unique(y[rows]):
+                sel = rows[y[rows] == label]
+                a, _ = _leader(X[sel], self.suspect_radius_m, np.zeros((0, d)))
+                key[sel] = (a * 8 + self._key_base(float(label))) * 2 + 1  # suspects: odd keys
+        return _cells(X, y, ids, t_ns, key, sus)
+
+
+def _positive(name: str, value: float) -> float:
+    value = float(value)
+    if not (np.isfinite(value) and value > 0):
+        raise InputDataError(f"{name} must be a positive number of metres, got {value!r}")
+    return value
+
+
+def _cells(X, y, ids, t_ns, key, sus) -> TrainingSet:
+    """TrainingSet of the cells given by an integer ``key`` per row (ordered by first time)."""
+    n, d = X.shape
+    _, inv = np.unique(key, return_inverse=True)
+    inv = inv.reshape(-1)
+    m = int(inv.max()) + 1
+    order = np.lexsort((np.arange(n), t_ns))
+    first_pos = np.full(m, n, dtype=np.int64)
+    np.minimum.at(first_pos, inv[order], np.arange(n))
+    rank = np.empty(m, dtype=np.int64)
+    rank[np.argsort(first_pos, kind="stable")] = np.arange(m)
+    cell = rank[inv]
+    counts = np.bincount(cell, minlength=m)
+    Xm = np.stack([np.bincount(cell, X[:, j], minlength=m) for j in range(d)], axis=1)
+    Xm /= counts[:, None]
+    ym = np.empty(m)
+    ym[cell] = y
+    susm = np.zeros(m, dtype=bool)
+    susm[cell] = sus
+    by_cell = order[np.argsort(cell[order], kind="stable")]
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    members = [by_cell[bounds[j] : bounds[j + 1]] for j in range(m)]
+    rep_ids = ids[by_cell[bounds[1:] - 1]]
+    return TrainingSet(Xm, ym, counts.astype(np.int64), rep_ids, members, cell, susm, ids)
+
+
+def radius_merge(
+    X: np.ndarray,
+    y: np.ndarray,
+    ids: np.ndarray,
+    t_ns: np.ndarray,
+    radius_m: float,
+    suspects: Iterable[int] | np.ndarray = (),
+    external_radius_m: float | None = None,
+    suspect_radius_m: float | None = None,
+) -> TrainingSet:
+    """Batch radius merge (identical to one :meth:`StreamingMerger.update` on these rows)."""
+    merger = StreamingMerger(radius_m, external_radius_m, suspect_radius_m)
+    return merger.update(X, y, ids, t_ns, suspects)

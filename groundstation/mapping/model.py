@@ -1,10 +1,15 @@
 """The mapper's default pipeline: merge -> fit (exact or sparse, warm-started) -> field -> mesh.
 
 DESIGN.md §3 "Model no more than the scene needs": :class:`SurfaceModel` merges redundant
-observations per voxel (``merge.py``), fits the exact :class:`RobustGPIS` while the merged set
-fits ``exact_budget`` and the sparse :class:`SparseRobustGPIS` beyond it (same weights,
-ALGORITHM.md §8), warm-starts every refit from the previous one, and meshes only a narrow band
-around the zero set (``field.py``) on a grid whose spacing follows the learnt length scale.
+observations (``merge.py``: incremental radius merge by default, radii frozen until the learnt
+length scale moves them by ``merge_hysteresis``), fits the exact :class:`RobustGPIS` while the
+merged set fits ``exact_budget`` and the sparse :class:`SparseRobustGPIS` beyond it (same
+weights, ALGORITHM.md §8), and warm-starts every refit from the previous one. Warm refits keep
+the kernel hyperparameters unless the merged set grew by ``theta_refit_growth`` and stop when
+no ``log u_i`` moves by ``refit_u_tol``, so a covered structure refits in a few cheap
+iterations; a fit stuck at the Gaussian limit is redone cold at such a growth step. Only a
+narrow band around the zero set is meshed (``field.py``), on a grid whose spacing follows the
+learnt length scale.
 Pure: no clock reads except the ``timings_`` it reports, no files, no threads.
 """
 
@@ -22,7 +27,7 @@ from groundstation.errors import ConvergenceWarning, InputDataError, NotFittedEr
 from groundstation.mapping.field import BandField, narrow_band_field
 from groundstation.mapping.gpis import GPIS
 from groundstation.mapping.grid import Grid
-from groundstation.mapping.merge import TrainingSet, merge_observations
+from groundstation.mapping.merge import StreamingMerger, TrainingSet, merge_observations
 from groundstation.mapping.robust import RobustGPIS
 from groundstation.mapping.settings import MappingSettings, SurfaceSettings
 from groundstation.mapping.sparse import SparseRobustGPIS, choose_inducing
@@ -111,6 +116,8 @@ class SurfaceModel:
         self.suspect_ids_ = np.zeros(0, dtype=np.int64)
         self.timings_: dict[str, float] = {}
         self._estimators: dict[str, object] = {}
+        self._merger: StreamingMerger | None = None
+        self._n_theta = 0  # merged size at the last fit that learnt the kernel hyperparameters
 
     # ------------------------------------------------------------------ fit
 
@@ -124,6 +131,29 @@ class SurfaceModel:
         ell = self._voxel()
         inner = max(ms.merge_voxel_factor * ell, ms.merge_voxel_min)
         return inner, max(ms.external_voxel_factor * ell, inner)
+
+    def _merge(self, X, y, ids, t_ns) -> TrainingSet:
+        """Merged view of all raw observations (``merge_rule``; radii frozen with hysteresis)."""
+        ms = self.mapping
+        inner, outer = self._voxels()
+        if ms.merge_rule == "voxel":
+            return merge_observations(X, y, ids, t_ns, inner, self.suspect_ids_, outer)
+        m = self._merger
+        h = ms.merge_hysteresis
+        if (
+            m is None
+            or not (1.0 / h < m.radius_m / inner < h)
+            or not (1.0 / h < m.external_radius_m / outer < h)
+        ):
+            m = self._merger = StreamingMerger(inner, outer)
+        return m.update(X, y, ids, t_ns, self.suspect_ids_)
+
+    def _weights(self, ts: TrainingSet, rows=slice(None)) -> dict:
+        """``sample_weight`` of the robust fit: capped cell counts (``merge_weight_cap``)."""
+        cap = self.mapping.merge_weight_cap
+        if self.mapping.model == "gpis" or cap <= 1.0:
+            return {}
+        return {"sample_weight": np.minimum(ts.counts[rows], cap).astype(np.float64)}
 
     def _make(self, mode: str):
         ms = self.mapping
@@ -188,10 +218,19 @@ class SurfaceModel:
         with _blas_threads(ms.blas_threads):
             t0 = time.perf_counter()
             if ms.merge:
-                inner, outer = self._voxels()
-                ts = merge_observations(X, y, ids, t_ns, inner, self.suspect_ids_, outer)
+                ts = self._merge(X, y, ids, t_ns)
             else:
                 ts = _identity_set(X, np.asarray(y, dtype=np.float64).reshape(-1), ids)
+            prev = self.fit_
+            if (
+                prev is not None
+                and ms.model != "gpis"
+                and getattr(prev, "alpha_", 0.0) >= ms.gaussian_restart_alpha
+                and len(ts) > ms.theta_refit_growth * self._n_theta
+            ):
+                # The Gaussian limit is absorbing for warm starts (ALGORITHM.md §7.3): with
+                # markedly more data, start over (pilot, cold fit) instead of continuing it.
+                self.fit_, self._estimators, self._n_theta = None, {}, 0
             if self.fit_ is None and ms.merge and ms.model != "gpis" and len(ts) > ms.pilot_size:
                 # Cold start on a large set: learn l on a voxel subsample (exact, cheap), then
                 # merge at the learnt scale; the fit below warm-starts from this pilot.
@@ -200,11 +239,10 @@ class SurfaceModel:
                 pilot = self._make("exact")
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", ConvergenceWarning)
-                    pilot.fit(ts.X[sub], ts.y[sub])
+                    pilot.fit(ts.X[sub], ts.y[sub], **self._weights(ts, sub))
                 self.fit_ = pilot
                 pilot_s = time.perf_counter() - tp
-                inner, outer = self._voxels()
-                ts = merge_observations(X, y, ids, t_ns, inner, self.suspect_ids_, outer)
+                ts = self._merge(X, y, ids, t_ns)
             t1 = time.perf_counter()
             mode = "exact" if (ms.model == "gpis" or len(ts) <= ms.exact_budget) else "sparse"
             est = self._estimators.get(mode)
@@ -220,18 +258,29 @@ class SurfaceModel:
             if ms.model != "gpis":
                 est.tol = ms.refit_tol if warm else ms.tol
                 est.max_iter = ms.refit_max_iter if warm else ms.max_iter
+                est.u_tol = ms.refit_u_tol if warm else None
+                # Warm refits keep theta unless the merged set grew markedly (a covered
+                # structure stops growing, so its refits only update q(tau) and q(f)).
+                learn = ms.optimize and (
+                    not warm or len(ts) > ms.theta_refit_growth * self._n_theta
+                )
+                est.optimize = learn
+                if learn:
+                    self._n_theta = len(ts)
             with warnings.catch_warnings():
                 # A refit cut at refit_max_iter is expected; converged_ reports it.
                 if warm:
                     warnings.simplefilter("ignore", ConvergenceWarning)
-                est.fit(ts.X, ts.y)
+                est.fit(ts.X, ts.y, **self._weights(ts))
             t2 = time.perf_counter()
         self.fit_, self.mode_, self.training_set_ = est, mode, ts
         self.n_train_, self.n_raw_ = len(ts), n
         self.converged_ = bool(est.converged_)
         if ms.model != "gpis":
             # Only contacts can be false positives (ALGORITHM.md §7.5).
-            flagged = np.flatnonzero((est.uncertainty_ > ms.suspect_u) & (ts.y == 0.0))
+            u, contact = np.asarray(est.uncertainty_), ts.y == 0.0
+            u_ref = ms.suspect_ratio * float(np.median(u[contact])) if contact.any() else 0.0
+            flagged = np.flatnonzero((u > max(ms.suspect_u, u_ref)) & contact)
             self.suspect_ids_ = (
                 np.unique(np.concatenate([ts.ids[ts.members[j]] for j in flagged]))
                 if flagged.size

@@ -69,11 +69,22 @@ def kl_tau(at: np.ndarray, bt: np.ndarray, alpha: float, beta: float) -> np.ndar
 
 
 def elbo(
-    kl_f: float, s: np.ndarray, at: np.ndarray, bt: np.ndarray, alpha: float, beta: float
+    kl_f: float,
+    s: np.ndarray,
+    at: np.ndarray,
+    bt: np.ndarray,
+    alpha: float,
+    beta: float,
+    c: np.ndarray | None = None,
 ) -> float:
-    """Full ELBO L2 = sum l_i - KL_f - sum KL_tau_i (ALGORITHM.md L2, L2a)."""
+    """Full ELBO L2 = sum l_i - KL_f - sum KL_tau_i (ALGORITHM.md L2, L2a).
+
+    ``c`` (n,): multiplicities (a merged cell of ``c_i`` coincident observations; their
+    per-datum terms are equal, so they enter ``c_i`` times). None: all ones.
+    """
     ell = -0.5 * LOG_2PI - 0.5 * (np.log(bt) - digamma(at)) - 0.5 * (at / bt) * s
-    return float(np.sum(ell) - kl_f - np.sum(kl_tau(at, bt, alpha, beta)))
+    site = ell - kl_tau(at, bt, alpha, beta)
+    return float((np.sum(site) if c is None else float(c @ site)) - kl_f)
 
 
 def collapsed_elbo(
@@ -90,45 +101,58 @@ def collapsed_elbo(
 
 
 def site_bound_sum(
-    alpha: np.ndarray | float, beta: np.ndarray | float, s: np.ndarray
+    alpha: np.ndarray | float, beta: np.ndarray | float, s: np.ndarray, c: np.ndarray | None = None
 ) -> np.ndarray:
     """``sum_i L4_i(alpha, beta; s_i)`` broadcast over (alpha, beta) arrays (ALGORITHM.md L4).
 
     Rearranged as ``sum_i [lnG(a+1/2) - lnG(a) - ln(2 pi)/2 - a ln(1 + h_i/b) - ln(b + h_i)/2]``
     with ``h = s/2``: no O(alpha) terms cancel, so the profile stays smooth up to alpha = 1e6.
+    ``c`` (n,): multiplicities of the sites (None: ones).
     """
     alpha = np.asarray(alpha, dtype=np.float64)
     beta = np.asarray(beta, dtype=np.float64)
     h = 0.5 * s
-    n = s.shape[0]
     b = beta[..., None]
-    log1p_sum = np.log1p(h / b).sum(axis=-1)
-    log_sum = np.log(b + h).sum(axis=-1)
+    if c is None:
+        n = s.shape[0]
+        log1p_sum = np.log1p(h / b).sum(axis=-1)
+        log_sum = np.log(b + h).sum(axis=-1)
+    else:
+        n = float(np.sum(c))
+        log1p_sum = np.log1p(h / b) @ c
+        log_sum = np.log(b + h) @ c
     return n * (log_gamma_ratio_half(alpha) - 0.5 * LOG_2PI) - alpha * log1p_sum - 0.5 * log_sum
 
 
-def optimal_beta(alpha: np.ndarray | float, s: np.ndarray, floor: float) -> np.ndarray:
+def optimal_beta(
+    alpha: np.ndarray | float, s: np.ndarray, floor: float, c: np.ndarray | None = None
+) -> np.ndarray:
     """Maximiser over ``beta >= floor`` of sum L4 for fixed alpha (ALGORITHM.md §4.1).
 
     Root of ``(alpha + 1/2) sum_i beta / (beta + s_i/2) = n alpha``, written as
     ``G(beta) = mean_i h_i / (beta + h_i) - 1 / (2 alpha + 1) = 0`` with ``h = s/2`` (no
     ``1 - x`` cancellation near the Gaussian limit). G decreases in beta; bracketed Newton in
     log beta (bisection whenever Newton leaves the bracket), vectorised over ``alpha``.
-    Returns an array shaped like ``atleast_1d(alpha)``.
+    Returns an array shaped like ``atleast_1d(alpha)``. ``c``: site multiplicities (means
+    become ``c``-weighted means).
     """
     alpha = np.atleast_1d(np.asarray(alpha, dtype=np.float64))
     h = 0.5 * s
     target = 1.0 / (2.0 * alpha + 1.0)
+    cw = None if c is None else c / float(np.sum(c))
 
     def G_and_slope(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         b = np.exp(t)[:, None]
         frac = h / (b + h)
-        return frac.mean(axis=1) - target, -(frac * (1.0 - frac)).mean(axis=1)
+        if cw is None:
+            return frac.mean(axis=1) - target, -(frac * (1.0 - frac)).mean(axis=1)
+        return frac @ cw - target, -((frac * (1.0 - frac)) @ cw)
 
     lo = np.full(alpha.shape, math.log(floor))
     at_floor = G_and_slope(lo)[0] <= 0.0
     # G <= 0 once beta >= (2 alpha + 1) mean(h): bracket [floor, 2 (2 alpha + 1) mean(h)].
-    hi = np.log(np.maximum((2.0 * alpha + 1.0) * float(np.mean(h)), floor) * 2.0)
+    mean_h = float(np.mean(h)) if cw is None else float(h @ cw)
+    hi = np.log(np.maximum((2.0 * alpha + 1.0) * mean_h, floor) * 2.0)
     t = 0.5 * (lo + hi)
     for _ in range(100):
         G, slope = G_and_slope(t)
@@ -148,19 +172,26 @@ def optimal_beta(alpha: np.ndarray | float, s: np.ndarray, floor: float) -> np.n
 
 
 def direct_update(
-    s: np.ndarray, alpha_old: float, alpha_bounds: tuple[float, float], floor: float
+    s: np.ndarray,
+    alpha_old: float,
+    alpha_bounds: tuple[float, float],
+    floor: float,
+    c: np.ndarray | None = None,
 ) -> tuple[float, float]:
-    """Exact joint maximiser of sum L4 over (alpha, beta): grid + bounded Brent (§4.1)."""
+    """Exact joint maximiser of sum L4 over (alpha, beta): grid + bounded Brent (§4.1).
+
+    ``c`` (n,): site multiplicities (None: ones).
+    """
     log_lo, log_hi = math.log(alpha_bounds[0]), math.log(alpha_bounds[1])
     grid = np.exp(np.linspace(log_lo, log_hi, ALPHA_GRID_POINTS))
-    betas = optimal_beta(grid, s, floor)
-    vals = site_bound_sum(grid, betas, s)
+    betas = optimal_beta(grid, s, floor, c)
+    vals = site_bound_sum(grid, betas, s, c)
     k = int(np.argmax(vals))
     cands = [(float(vals[k]), float(grid[k]), float(betas[k]))]
 
     def neg_profile(log_alpha: float) -> float:
         a = math.exp(log_alpha)
-        return -float(site_bound_sum(a, optimal_beta(a, s, floor)[0], s))
+        return -float(site_bound_sum(a, optimal_beta(a, s, floor, c)[0], s, c))
 
     left = math.log(grid[max(k - 1, 0)])
     right = math.log(grid[min(k + 1, grid.size - 1)])
@@ -169,21 +200,28 @@ def direct_update(
             neg_profile, bounds=(left, right), method="bounded", options={"xatol": 1e-7}
         )
         a = math.exp(float(res.x))
-        cands.append((-float(res.fun), a, float(optimal_beta(a, s, floor)[0])))
+        cands.append((-float(res.fun), a, float(optimal_beta(a, s, floor, c)[0])))
     if alpha_bounds[0] <= alpha_old <= alpha_bounds[1]:  # never worse than the current alpha
-        b = float(optimal_beta(alpha_old, s, floor)[0])
-        cands.append((float(site_bound_sum(alpha_old, b, s)), alpha_old, b))
+        b = float(optimal_beta(alpha_old, s, floor, c)[0])
+        cands.append((float(site_bound_sum(alpha_old, b, s, c)), alpha_old, b))
     _, alpha, beta = max(cands, key=lambda c: c[0])
     return alpha, beta
 
 
 def em_update(
-    at: np.ndarray, bt: np.ndarray, alpha_bounds: tuple[float, float], floor: float
+    at: np.ndarray,
+    bt: np.ndarray,
+    alpha_bounds: tuple[float, float],
+    floor: float,
+    c: np.ndarray | None = None,
 ) -> tuple[float, float]:
-    """Literal M-step M1/M2 (Kuss): Gamma ML fit to the precisions under q(tau), beta >= floor."""
+    """Literal M-step M1/M2 (Kuss): Gamma ML fit to the precisions under q(tau), beta >= floor.
+
+    ``c`` (n,): site multiplicities (None: ones).
+    """
     w = at / bt
-    mean_w = float(np.mean(w))
-    mean_elog = float(np.mean(np.log(bt) - digamma(at)))
+    mean_w = float(np.average(w, weights=c))
+    mean_elog = float(np.average(np.log(bt) - digamma(at), weights=c))
     lo, hi = alpha_bounds
     c = mean_elog + math.log(mean_w)  # ALGORITHM.md M1
 
@@ -334,15 +372,27 @@ class RobustGPIS:
             "max_iter": check_int("max_iter", self.max_iter, 1),
             "tol": check_positive("tol", self.tol),
             "chunk_mb": check_positive("chunk_mb", self.chunk_mb),
+            # Optional early stop (warm refits): max |delta log u_i| below this (set by callers
+            # such as ``model.SurfaceModel`` as an attribute; None: ELBO rule only).
+            "u_tol": getattr(self, "u_tol", None),
         }
 
     # ------------------------------------------------------------------ fit
 
-    def fit(self, X: np.ndarray, y: np.ndarray) -> RobustGPIS:
-        """Fit to points ``X`` (n, 2|3) float64 metres with labels ``y`` (n,); returns self."""
+    def fit(
+        self, X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None = None
+    ) -> RobustGPIS:
+        """Fit to points ``X`` (n, 2|3) float64 metres with labels ``y`` (n,); returns self.
+
+        ``sample_weight`` (n,) > 0, optional: multiplicity of each row (a merged cell standing
+        for ``c_i`` coincident observations: its noise precision is ``c_i w_i`` and its bound
+        terms count ``c_i`` times, which is exact for coincident duplicates; ``model.py``).
+        The GPIS initialisation ignores it (it only picks the basin).
+        """
         cfg = self._settings()
         X, y = check_training_data(X, y)
         n = X.shape[0]
+        c = check_sample_weight(sample_weight, n)
         mu0 = cfg["mu0"]
         r = y - mu0
         D = sq_dists(X)
@@ -365,7 +415,7 @@ class RobustGPIS:
                 bt[k:] = beta + 0.5 * ((y[k:] - mean) ** 2 + std**2)
             step = np.clip(getattr(self, "_rprop_step", step), 1e-3, RPROP_START)
             K = se_from_sq_dists(D, *np.exp(theta))
-            fac = factorize(K, D, at / bt, r, mu0, math.exp(theta[0]))
+            fac = factorize(K, D, _prec(at / bt, c), r, mu0, math.exp(theta[0]))
         elif cfg["init"] == "gpis":
             # ALGORITHM.md §7.2: theta from a homoscedastic GPIS fit. q(tau) starts as for new
             # data in §8 "Streaming", IG(alpha + 1/2, beta + s_i/2), with s_i from the GPIS
@@ -387,10 +437,10 @@ class RobustGPIS:
             s_loo = (g.factor.a / p_ii) ** 2 + np.maximum(1.0 / p_ii - math.exp(g.theta[2]), 0.0)
             alpha, beta = cfg["alpha"], cfg["beta"]
             if cfg["noise_update"] == "direct":
-                alpha, beta = direct_update(s_loo, alpha, cfg["alpha_bounds"], cfg["floor"])
+                alpha, beta = direct_update(s_loo, alpha, cfg["alpha_bounds"], cfg["floor"], c)
             at, bt = np.full(n, alpha + 0.5), beta + 0.5 * s_loo
             del g  # release the GPIS factorisation (n x n) before the EM
-            fac = factorize(K, D, at / bt, r, mu0, math.exp(theta[0]))
+            fac = factorize(K, D, _prec(at / bt, c), r, mu0, math.exp(theta[0]))
         else:
             # Paper: q(tau_i) = prior, w = alpha0 / beta0.
             alpha, beta = cfg["alpha"], cfg["beta"]
@@ -398,9 +448,9 @@ class RobustGPIS:
             at = np.full(n, alpha)
             bt = np.full(n, beta)
             K = se_from_sq_dists(D, *np.exp(theta))
-            fac = factorize(K, D, at / bt, r, mu0, math.exp(theta[0]))
+            fac = factorize(K, D, _prec(at / bt, c), r, mu0, math.exp(theta[0]))
 
-        em = _EMLoop(D, y, r, mu0, cfg)
+        em = _EMLoop(D, y, r, mu0, cfg, c)
         state = em.run(theta, K, fac, at, bt, alpha, beta, step)
         theta, fac, at, bt, alpha, beta = (
             state["theta"],
@@ -451,37 +501,62 @@ def _common_prefix(X: np.ndarray, y: np.ndarray, X_old: np.ndarray, y_old: np.nd
     return k if same.all() else int(np.argmin(same))
 
 
-class _EMLoop:
-    """The iteration of ALGORITHM.md §5 for fixed data."""
+def check_sample_weight(sample_weight, n: int) -> np.ndarray | None:
+    """``sample_weight`` as (n,) float64 > 0, or None (all ones)."""
+    if sample_weight is None:
+        return None
+    c = np.asarray(sample_weight, dtype=np.float64).reshape(-1)
+    if c.shape != (n,) or not np.all(np.isfinite(c) & (c > 0)):
+        raise ConfigError(f"sample_weight must be {n} finite values > 0, got shape {c.shape}")
+    return None if np.all(c == 1.0) else c
 
-    def __init__(self, D: np.ndarray, y: np.ndarray, r: np.ndarray, mu0: float, cfg: dict):
-        self.D, self.y, self.r, self.mu0, self.cfg = D, y, r, mu0, cfg
+
+def _prec(w: np.ndarray, c: np.ndarray | None) -> np.ndarray:
+    """Noise precision of each row: ``c_i w_i`` (``c_i`` coincident observations)."""
+    return w if c is None else c * w
+
+
+class _EMLoop:
+    """The iteration of ALGORITHM.md §5 for fixed data (``c``: row multiplicities or None)."""
+
+    def __init__(
+        self,
+        D: np.ndarray,
+        y: np.ndarray,
+        r: np.ndarray,
+        mu0: float,
+        cfg: dict,
+        c: np.ndarray | None = None,
+    ):
+        self.D, self.y, self.r, self.mu0, self.cfg, self.c = D, y, r, mu0, cfg, c
 
     def _factor(self, theta: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, BFactor]:
         ell, sf2 = np.exp(theta)
         K = se_from_sq_dists(self.D, ell, sf2)
-        return K, factorize(K, self.D, w, self.r, self.mu0, ell)
+        return K, factorize(K, self.D, _prec(w, self.c), self.r, self.mu0, ell)
 
     def _s(self, fac: BFactor) -> np.ndarray:
         return (self.y - fac.m) ** 2 + fac.diag_A  # s_i = (y_i - m_i)^2 + A_ii
 
     def run(self, theta, K, fac, at, bt, alpha, beta, step) -> dict:
-        cfg = self.cfg
+        cfg, c = self.cfg, self.c
         lo, hi = cfg["bounds"][:, 0], cfg["bounds"][:, 1]
-        trace = [elbo(fac.kl_f, self._s(fac), at, bt, alpha, beta)]
+        trace = [elbo(fac.kl_f, self._s(fac), at, bt, alpha, beta, c)]
         g_prev = np.zeros(2)
         calm, converged, n_iter = 0, False, 0
+        u_tol = cfg.get("u_tol")
+        log_u = np.log(bt / at)
         for n_iter in range(1, cfg["max_iter"] + 1):  # noqa: B007 (reported after the loop)
             s = self._s(fac)
             if cfg["noise_update"] == "direct":
-                alpha, beta = direct_update(s, alpha, cfg["alpha_bounds"], cfg["floor"])
+                alpha, beta = direct_update(s, alpha, cfg["alpha_bounds"], cfg["floor"], c)
                 at, bt = np.full_like(s, alpha + 0.5), beta + 0.5 * s  # E3/E4
             else:
                 at, bt = np.full_like(s, alpha + 0.5), beta + 0.5 * s  # E3/E4
-                alpha, beta = em_update(at, bt, cfg["alpha_bounds"], cfg["floor"])  # M1/M2
+                alpha, beta = em_update(at, bt, cfg["alpha_bounds"], cfg["floor"], c)  # M1/M2
             w = at / bt
             # L2 of the old q(f) under the new q(tau), (alpha, beta): the guard's reference.
-            base = elbo(fac.kl_f, s, at, bt, alpha, beta)
+            base = elbo(fac.kl_f, s, at, bt, alpha, beta, c)
             if not cfg["optimize"]:
                 fac = self._factor_K(K, theta, w)
             elif cfg["kernel_step"] == "rprop":
@@ -499,7 +574,7 @@ class _EMLoop:
                 accepted = False
                 if np.any(trial != theta):
                     K_t, fac_t = self._factor(trial, w)
-                    if elbo(fac_t.kl_f, self._s(fac_t), at, bt, alpha, beta) >= base:
+                    if elbo(fac_t.kl_f, self._s(fac_t), at, bt, alpha, beta, c) >= base:
                         theta, K, fac, accepted = trial, K_t, fac_t, True
                         g_prev = g
                     del K_t, fac_t
@@ -509,7 +584,7 @@ class _EMLoop:
                     fac = self._factor_K(K, theta, w)
             else:
                 theta, K, fac = self._lbfgs(theta, K, w, lo, hi)
-            trace.append(elbo(fac.kl_f, self._s(fac), at, bt, alpha, beta))
+            trace.append(elbo(fac.kl_f, self._s(fac), at, bt, alpha, beta, c))
             if abs(trace[-1] - trace[-2]) <= cfg["tol"] * max(1.0, abs(trace[-1])):
                 calm += 1
             else:
@@ -517,6 +592,12 @@ class _EMLoop:
             if calm >= PATIENCE:
                 converged = True
                 break
+            if u_tol is not None:
+                log_u_new = np.log(bt / at)
+                if float(np.max(np.abs(log_u_new - log_u), initial=0.0)) < u_tol:
+                    converged = True
+                    break
+                log_u = log_u_new
         return {
             "theta": theta,
             "fac": fac,
@@ -531,7 +612,7 @@ class _EMLoop:
         }
 
     def _factor_K(self, K: np.ndarray, theta: np.ndarray, w: np.ndarray) -> BFactor:
-        return factorize(K, self.D, w, self.r, self.mu0, math.exp(theta[0]))
+        return factorize(K, self.D, _prec(w, self.c), self.r, self.mu0, math.exp(theta[0]))
 
     def _lbfgs(self, theta, K, w, lo, hi):
         """A few L-BFGS-B iterations on the theta-part of L3, i.e. L1 at fixed w (§4.2).
@@ -542,7 +623,7 @@ class _EMLoop:
 
         def fun(t: np.ndarray):
             K_t, fac_t = self._factor(t, w)
-            lml = fac_t.log_marginal(w)
+            lml = fac_t.log_marginal(_prec(w, self.c))
             if not best or lml > best["lml"]:
                 best.update(theta=t.copy(), K=K_t, fac=fac_t, lml=lml)
             return -lml, -fac_t.grad

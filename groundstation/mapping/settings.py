@@ -40,16 +40,24 @@ class MappingSettings:
     merge : bool
         Merge redundant observations per voxel before fitting (``mapping.merge``).
     merge_voxel_factor : float
-        Voxel edge for contacts and internal points, in length scales (the learnt one, rounded
-        to a power of sqrt(2) so the merged set is stable between refits).
+        Merge radius (voxel edge) for contacts and internal points, in length scales (the learnt
+        one, rounded to a power of sqrt(2)), floored at ``merge_voxel_min``. 0.25 (was 0.125):
+        paper-like set Chamfer 0.062-0.072 m on 3 seeds (0.5: 0.076-0.128 m).
     external_voxel_factor : float
-        Voxel edge for external (free-space) points, in length scales (coarser: they are
-        redundant).
+        Merge radius (voxel edge) for external (free-space) points, in length scales (floored at
+        the contact radius). 0.3 (was 1.0): on the paper-like set (6 seeds) one free-space cell
+        per ~l merged them so far that every fit went to the Gaussian limit (Chamfer 0.24-0.5
+        m); at 0.3 l every seed reached Chamfer 0.060-0.066 m with the false contacts flagged.
     suspect_u : float
         A merged cell whose ``u_i`` exceeds this (label units^2) is a suspected false contact:
         its observations are never merged with trusted ones at the next refit.
+    suspect_ratio : float
+        ... and whose ``u_i`` also exceeds this multiple of the contacts' median ``u``: a fit in
+        a high-noise regime (every u above ``suspect_u``) must not flag every contact (seen on
+        the paper-like 3D set, where it collapsed the next merge to a few coarse cells).
     exact_budget : int
-        Largest merged training set fitted by the exact model; above it the sparse model runs.
+        Largest merged training set fitted by the exact model; above it the sparse model runs
+        (1000, was 1500: an exact EM iteration at n = 1400 cost ~3x a sparse one at M ~ 550).
     n_inducing : int
         Maximum number of inducing points of the sparse model.
     pilot_size : int
@@ -65,6 +73,32 @@ class MappingSettings:
         Floor of the merge voxel edge, metres.
     refit_tol : float
         Relative ELBO tolerance of warm-started refits (cold fits use ``tol``).
+    merge_rule : "radius" | "voxel"
+        ``radius`` (default): leader clustering within ``merge_voxel_factor * l`` (floored at
+        ``merge_voxel_min``), incremental between refits (``merge.StreamingMerger``); no cell
+        doubling on voxel boundaries, and revisited faces add no cells. ``voxel``: per-voxel
+        merge (``merge.merge_observations``), recomputed at every refit.
+    merge_weight_cap : float
+        A merged cell of ``c`` observations is fitted as ``min(c, merge_weight_cap)`` coincident
+        observations (noise precision ``c w``, bound terms counted ``c`` times; exact for exact
+        duplicates, ``RobustGPIS.fit(sample_weight=)``). Default 1 (off): with the counts the
+        converged fits on the paper-like set interpolated everything (beta at its floor,
+        l ~ 0.18 m, Chamfer 0.24-0.31 m), like the exact model on the raw rows (l = 0.07 m,
+        Chamfer 0.20 m); a cell then counts once whatever its size.
+    merge_hysteresis : float
+        The merge radii are frozen once chosen and only recomputed (a full re-merge) when the
+        learnt length scale moves them by more than this factor (> 1).
+    theta_refit_growth : float
+        Warm refits keep the kernel hyperparameters fixed (only q(tau), (alpha, beta) and q(f)
+        are updated) unless the merged set has grown by more than this factor since the last
+        fit that learnt them (>= 1; 1 learns them at every refit).
+    gaussian_restart_alpha : float
+        A fit whose alpha reached this (the Gaussian limit, every u alike, nothing flagged) is
+        not warm-started at the next refit that would learn theta (``theta_refit_growth``): it
+        is redone cold, since a warm start never leaves that limit (seen on the 40-min session:
+        alpha = 1e6 from the first fit on, while a cold fit at 20 min gave alpha = 0.54).
+    refit_u_tol : float
+        Warm refits also stop once no ``log u_i`` moved by more than this in one iteration.
     blas_threads : int
         BLAS threads while fitting/evaluating (0: leave the process setting alone). One thread
         was steadier and faster than two on the loaded 2-core machines (STACK.md).
@@ -83,16 +117,23 @@ class MappingSettings:
     tol: float = 1e-6
     beta_floor: float = 1e-6
     merge: bool = True
-    merge_voxel_factor: float = 0.125
-    external_voxel_factor: float = 1.0
+    merge_voxel_factor: float = 0.25
+    external_voxel_factor: float = 0.3
     suspect_u: float = 0.05
-    exact_budget: int = 1500
+    suspect_ratio: float = 3.0
+    exact_budget: int = 1000
     n_inducing: int = 600
     pilot_size: int = 600
     refit_tol: float = 1e-5
     refit_max_iter: int = 15
     merge_voxel_min: float = 0.1
     blas_threads: int = 1
+    merge_rule: Literal["radius", "voxel"] = "radius"
+    merge_hysteresis: float = 2.0
+    merge_weight_cap: float = 1.0
+    theta_refit_growth: float = 1.25
+    refit_u_tol: float = 0.1
+    gaussian_restart_alpha: float = 1e5
 
     def __post_init__(self) -> None:
         for name in (
@@ -105,12 +146,29 @@ class MappingSettings:
             "merge_voxel_factor",
             "external_voxel_factor",
             "suspect_u",
+            "suspect_ratio",
             "refit_tol",
             "merge_voxel_min",
+            "refit_u_tol",
+            "gaussian_restart_alpha",
         ):
             value = getattr(self, name)
             if not value > 0:
                 raise ValueError(f"mapping.{name} must be > 0, got {value!r}")
+        if self.merge_rule not in ("radius", "voxel"):
+            raise ValueError(
+                f"mapping.merge_rule must be 'radius' or 'voxel', got {self.merge_rule!r}"
+            )
+        if not self.merge_weight_cap >= 1.0:
+            raise ValueError(
+                f"mapping.merge_weight_cap must be >= 1, got {self.merge_weight_cap!r}"
+            )
+        if not self.merge_hysteresis > 1.0:
+            raise ValueError(f"mapping.merge_hysteresis must be > 1, got {self.merge_hysteresis!r}")
+        if not self.theta_refit_growth >= 1.0:
+            raise ValueError(
+                f"mapping.theta_refit_growth must be >= 1, got {self.theta_refit_growth!r}"
+            )
         if self.max_iter < 1:
             raise ValueError(f"mapping.max_iter must be >= 1, got {self.max_iter!r}")
         for name, low in (

@@ -29,6 +29,8 @@ from groundstation.mapping.robust import (
     RPROP_START,
     RobustGPIS,
     _EMLoop,
+    _prec,
+    check_sample_weight,
     direct_update,
 )
 from groundstation.mapping.validation import (
@@ -142,6 +144,20 @@ class SparseFactor:
         return self.F
 
 
+def kernel_blocks(
+    Duu: np.ndarray, Duf: np.ndarray, lengthscale: float, signal_var: float, jitter: float = JITTER
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The theta-only part of S1: ``Kuu + jitter`` (M, M), its Cholesky ``Lu``, ``Kuf`` (M, n)
+    and ``Phi = Lu^-1 Kuf`` (M, n) (ALGORITHM.md §8)."""
+    M = Duu.shape[0]
+    Kuu = se_from_sq_dists(Duu, lengthscale, signal_var)
+    Kuu.flat[:: M + 1] += jitter * signal_var  # jitter scales with sigma_f^2: dKuu/dlog sf2 = Kuu
+    Lu = _chol(Kuu, "Kuu")
+    Kuf = se_from_sq_dists(Duf, lengthscale, signal_var)
+    Phi = solve_triangular(Lu, Kuf, lower=True, check_finite=False)  # Lu^-1 Kuf (S1)
+    return Kuu, Lu, Kuf, Phi
+
+
 def sparse_factorize(
     Duu: np.ndarray,
     Duf: np.ndarray,
@@ -152,6 +168,7 @@ def sparse_factorize(
     signal_var: float,
     jitter: float = JITTER,
     with_grad: bool = True,
+    blocks: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> SparseFactor:
     """S1/S2 and the kernel gradient of S1 at ``theta`` for precisions ``w``.
 
@@ -164,6 +181,9 @@ def sparse_factorize(
     mu0, lengthscale, signal_var : floats
     jitter : float, relative to ``signal_var``
     with_grad : bool
+    blocks : tuple, optional
+        ``kernel_blocks(Duu, Duf, lengthscale, signal_var, jitter)`` for this theta (reused
+        between EM iterations that keep theta: only the weights change).
 
     Returns
     -------
@@ -171,11 +191,9 @@ def sparse_factorize(
     """
     M, n = Duf.shape
     l2 = lengthscale * lengthscale
-    Kuu = se_from_sq_dists(Duu, lengthscale, signal_var)
-    Kuu.flat[:: M + 1] += jitter * signal_var  # jitter scales with sigma_f^2: dKuu/dlog sf2 = Kuu
-    Lu = _chol(Kuu, "Kuu")
-    Kuf = se_from_sq_dists(Duf, lengthscale, signal_var)
-    Phi = solve_triangular(Lu, Kuf, lower=True, check_finite=False)  # Lu^-1 Kuf (S1)
+    if blocks is None:
+        blocks = kernel_blocks(Duu, Duf, lengthscale, signal_var, jitter)
+    Kuu, Lu, Kuf, Phi = blocks
     sw = np.sqrt(w)
     At = Phi * sw[None, :]  # sqrt(w)-scaled columns: unit-noise SGPR algebra
     B = At @ At.T
@@ -277,14 +295,32 @@ class SparsePosterior:
 class _SparseEMLoop(_EMLoop):
     """The EM of ``robust._EMLoop`` with the SGPR factor in place of the exact one."""
 
-    def __init__(self, Duu, Duf, y, r, mu0, cfg, jitter):
-        super().__init__(None, y, r, mu0, cfg)
+    def __init__(self, Duu, Duf, y, r, mu0, cfg, jitter, c=None):
+        super().__init__(None, y, r, mu0, cfg, c)
         self.Duu, self.Duf, self.jitter = Duu, Duf, jitter
+        self._blocks: dict = {}  # theta -> kernel_blocks, the last two thetas (current, trial)
 
     def _factor(self, theta: np.ndarray, w: np.ndarray):
         ell, sf2 = np.exp(theta)
+        key = tuple(np.asarray(theta, dtype=np.float64).tolist())
+        blocks = self._blocks.get(key)
+        if blocks is None:  # only theta steps need new kernel blocks
+            while len(self._blocks) >= 2:
+                self._blocks.pop(next(iter(self._blocks)))
+            blocks = kernel_blocks(self.Duu, self.Duf, ell, sf2, self.jitter)
+        self._blocks.pop(key, None)
+        self._blocks[key] = blocks  # most recently used last
         return None, sparse_factorize(
-            self.Duu, self.Duf, w, self.r, self.mu0, ell, sf2, self.jitter, self.cfg["optimize"]
+            self.Duu,
+            self.Duf,
+            _prec(w, self.c),
+            self.r,
+            self.mu0,
+            ell,
+            sf2,
+            self.jitter,
+            self.cfg["optimize"],
+            blocks=blocks,
         )
 
     def _factor_K(self, K, theta: np.ndarray, w: np.ndarray):
@@ -340,12 +376,18 @@ class SparseRobustGPIS(RobustGPIS):
         Z = check_inputs(self.inducing, "inducing", dims=(X.shape[1],))
         return Z, None
 
-    def fit(self, X: np.ndarray, y: np.ndarray) -> SparseRobustGPIS:
-        """Fit to ``X`` (n, 2|3) float64 metres with labels ``y`` (n,); returns self."""
+    def fit(
+        self, X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None = None
+    ) -> SparseRobustGPIS:
+        """Fit to ``X`` (n, 2|3) float64 metres with labels ``y`` (n,); returns self.
+
+        ``sample_weight`` (n,): row multiplicities, as in :meth:`RobustGPIS.fit`.
+        """
         cfg = self._settings()
         jitter = check_positive("jitter", self.jitter)
         X, y = check_training_data(X, y)
         n = X.shape[0]
+        c = check_sample_weight(sample_weight, n)
         mu0 = cfg["mu0"]
         r = y - mu0
         prev = getattr(self, "posterior_", None)
@@ -365,26 +407,33 @@ class SparseRobustGPIS(RobustGPIS):
             # Cold start: exact robust GPIS on a voxel subsample (theta, alpha, beta and a robust
             # q(f)), then s_i of every row from its predictive moments (§8 "Streaming").
             n_sub = check_int("init_subset", self.init_subset, 2)
-            sub = choose_inducing(X, y, math.exp(cfg["theta"][0]), n_sub)
+            # All rows when they fit the budget: a voxel subsample can drop the free-space
+            # points that contradict a false contact, and the init then lands in the Gaussian
+            # limit (ALGORITHM.md §7.3; seen on a radius-merged sphere session).
+            sub = (
+                np.arange(n)
+                if n <= n_sub
+                else choose_inducing(X, y, math.exp(cfg["theta"][0]), n_sub)
+            )
             if not np.any(y[sub] == 0.0):
                 sub = np.union1d(sub, np.flatnonzero(y == 0.0)[:1])
             params = {k: getattr(self, k) for k in _ROBUST_PARAMS}
             params.update(warm_start=False)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", ConvergenceWarning)
-                init = RobustGPIS(**params).fit(X[sub], y[sub])
+                init = RobustGPIS(**params).fit(X[sub], y[sub], None if c is None else c[sub])
             theta = np.log([init.lengthscale_, init.signal_var_])
             alpha, beta = init.alpha_, max(init.beta_, cfg["floor"])
             mean, sd = init.predict(X, return_std=True)
             s = (y - mean) ** 2 + sd**2
             if cfg["noise_update"] == "direct":
-                alpha, beta = direct_update(s, alpha, cfg["alpha_bounds"], cfg["floor"])
+                alpha, beta = direct_update(s, alpha, cfg["alpha_bounds"], cfg["floor"], c)
         # Z at the current (warm) or subsample-learnt (cold) length scale, fixed during the EM.
         Z, zidx = self._inducing(X, y, math.exp(theta[0]))
         at, bt = np.full(n, alpha + 0.5), beta + 0.5 * s  # E3/E4 from predictive moments
         Duu = sq_dists(Z)
         Duf = sq_dists(Z, X)
-        em = _SparseEMLoop(Duu, Duf, y, r, mu0, cfg, jitter)
+        em = _SparseEMLoop(Duu, Duf, y, r, mu0, cfg, jitter, c)
         fac = em._factor_K(None, theta, at / bt)
         state = em.run(theta, None, fac, at, bt, alpha, beta, step)
         theta, fac = state["theta"], state["fac"]

@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 
 from groundstation.errors import InputDataError
-from groundstation.mapping.merge import ObservationStore, merge_observations
+from groundstation.mapping.merge import (
+    ObservationStore,
+    StreamingMerger,
+    merge_observations,
+    radius_merge,
+)
 
 
 def wall_slide(n=400, seed=0):
@@ -119,3 +124,100 @@ def test_store_accumulates_merges_and_tracks_suspects() -> None:
     with pytest.raises(InputDataError, match="columns"):
         store.add(np.array([10_000]), np.zeros((1, 2)), np.zeros(1), np.zeros(1, np.int64))
     assert store.raw_count == 400
+
+
+# --------------------------------------------------------------------------- radius merge
+
+
+def plane_strokes(x0: float, n_strokes: int = 12, per: int = 40, seed: int = 0):
+    """25 Hz strokes on the plane x = x0 (noise 3 mm across it) with their internal points."""
+    rng = np.random.default_rng(seed)
+    P = []
+    for _ in range(n_strokes):
+        start = rng.uniform([0.0, 0.0], [1.5, 1.5])
+        ang = rng.uniform(0.0, 2.0 * np.pi)
+        s = np.arange(per) * 0.01
+        P.append(start + s[:, None] * [np.cos(ang), np.sin(ang)])
+    P = np.concatenate(P)
+    n = P.shape[0]
+    C = np.c_[x0 + 0.003 * rng.standard_normal(n), P]
+    X = np.vstack([C, C - [0.1, 0.0, 0.0]])
+    y = np.r_[np.zeros(n), -np.ones(n)]
+    t = np.r_[np.arange(n), np.arange(n)].astype(np.int64) * 40_000_000
+    order = np.argsort(t, kind="stable")
+    return X[order], y[order], np.arange(2 * n, dtype=np.int64)[order], t[order]
+
+
+def test_a_face_on_a_voxel_boundary_is_not_doubled() -> None:
+    X, y, ids, t = plane_strokes(x0=1.0)  # contacts straddle x = 1.0, a 0.1 m voxel boundary
+    on = radius_merge(X, y, ids, t, 0.1)
+    off = radius_merge(X + [0.05, 0.0, 0.0], y, ids, t, 0.1)  # mid-voxel
+    assert len(on) == len(off)
+    # One cell per r-neighbourhood: same-label cells are never closer than r to each other's
+    # anchor, so their means are spread on the plane, not stacked across it.
+    for label in (0.0, -1.0):
+        P = on.X[on.y == label]
+        d = np.sqrt(((P[:, None, :] - P[None, :, :]) ** 2).sum(-1))
+        np.fill_diagonal(d, np.inf)
+        assert np.min(d.min(axis=1)) > 0.02
+    # The voxel rule splits the straddling face into two layers of cells.
+    vox_on = merge_observations(X, y, ids, t, 0.1)
+    vox_off = merge_observations(X + [0.05, 0.0, 0.0], y, ids, t, 0.1)
+    assert len(vox_on) > 1.4 * len(vox_off)
+
+
+def test_revisiting_the_same_faces_stops_the_growth_and_streaming_equals_batch() -> None:
+    g = np.arange(0.0, 1.5, 0.03)
+    yy, zz = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
+    C = np.c_[np.full(yy.size, 1.0), yy, zz]  # a raster pass covers the face [0, 1.5]^2
+    X1 = np.vstack([C, C - [0.1, 0.0, 0.0]])
+    y1 = np.r_[np.zeros(yy.size), -np.ones(yy.size)]
+    ids1 = np.arange(X1.shape[0], dtype=np.int64)
+    t1 = np.r_[np.arange(yy.size), np.arange(yy.size)].astype(np.int64)
+    X2, y2, _, t2 = plane_strokes(x0=1.0, n_strokes=60, seed=2)  # revisits it
+    inside = np.all((X2[:, 1:] > 0.0) & (X2[:, 1:] < 1.47), axis=1)
+    X2, y2, t2 = X2[inside], y2[inside], t2[inside]
+    X = np.vstack([X1, X2])
+    y = np.r_[y1, y2]
+    ids = np.r_[ids1, ids1.max() + 1 + np.arange(len(y2))]
+    t = np.r_[t1, t1.max() + 1 + t2]
+    merger = StreamingMerger(0.1)
+    first = merger.update(X1, y1, ids1, t1)
+    both = merger.update(X, y, ids, t)
+    assert both.counts.sum() == X.shape[0]
+    assert len(both) <= 1.05 * len(first)  # twice the data, (almost) no new cells
+    np.testing.assert_array_equal(both.cell_of, radius_merge(X, y, ids, t, 0.1).cell_of)
+    # Old cells keep their places as the session grows.
+    k = len(first)
+    np.testing.assert_array_equal(both.counts[:k] >= first.counts, True)
+
+
+def test_radius_merge_keeps_suspects_apart_and_clusters_a_gust() -> None:
+    X, y, ids, t = plane_strokes(x0=1.0)
+    rng = np.random.default_rng(3)
+    contacts = ids[y == 0]
+    suspects = rng.choice(contacts, size=20, replace=False)  # inside trusted cells
+    gust = np.c_[np.full(15, 1.6), 0.7 + 0.01 * rng.standard_normal((15, 2))]
+    Xg = np.vstack([X, gust])
+    yg = np.r_[y, np.zeros(15)]
+    gust_ids = 10_000 + np.arange(15)
+    idsg = np.r_[ids, gust_ids]
+    tg = np.r_[t, t.max() + 1 + np.arange(15)]
+    sus = np.r_[suspects, gust_ids]
+    ts = radius_merge(Xg, yg, idsg, tg, 0.1, suspects=sus, suspect_radius_m=0.5)
+    is_sus = np.isin(idsg, sus)
+    for j, mem in enumerate(ts.members):
+        assert is_sus[mem].all() or not is_sus[mem].any()
+        assert ts.suspect[j] == is_sus[mem][0]
+    assert len(np.unique(ts.cell_of[np.isin(idsg, gust_ids)])) == 1  # one gust, one cell
+    assert ts.counts.sum() == Xg.shape[0]
+
+
+def test_radius_merge_rejects_bad_input() -> None:
+    X, y, ids, t = plane_strokes(x0=1.0, n_strokes=1, per=5)
+    with pytest.raises(InputDataError, match="radius_m"):
+        radius_merge(X, y, ids, t, 0.0)
+    with pytest.raises(InputDataError, match="unique"):
+        radius_merge(X, y, np.zeros_like(ids), t, 0.1)
+    with pytest.raises(InputDataError, match="NaN"):
+        radius_merge(np.where(np.arange(10)[:, None] == 2, np.nan, X), y, ids, t, 0.1)

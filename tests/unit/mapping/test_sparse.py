@@ -189,3 +189,25 @@ def test_sparse_and_exact_agree_when_every_point_is_inducing() -> None:
     th = np.linspace(0, 2 * np.pi, 40)
     ring = np.c_[np.cos(th), np.sin(th)]
     assert math.isclose(np.median(np.abs(sparse.predict(ring))), 0.0, abs_tol=0.1)
+
+
+def test_sample_weight_equals_repeated_rows() -> None:
+    """A row of weight c is c coincident observations (the merged-cell multiplicity)."""
+
+    rng = np.random.default_rng(0)
+    X = rng.uniform(0.0, 1.0, (30, 2))
+    y = np.where(X[:, 0] > 0.6, 1.0, np.where(X[:, 0] < 0.4, -1.0, 0.0))
+    y[3] = 1.0  # an outlier
+    c = rng.integers(1, 4, 30)
+    Xd, yd = np.repeat(X, c, axis=0), np.repeat(y, c)
+    for cls, kw in ((RobustGPIS, {}), (SparseRobustGPIS, {"inducing": X[::2].copy()})):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            a = cls(max_iter=20, init="prior", **kw).fit(Xd, yd)
+            b = cls(max_iter=20, init="prior", **kw).fit(X, y, sample_weight=c)
+            plain = cls(max_iter=20, init="prior", **kw).fit(X, y)
+        np.testing.assert_allclose(b.predict(X), a.predict(X), atol=1e-6)
+        np.testing.assert_allclose(b.elbo_trace_, a.elbo_trace_, rtol=1e-6, atol=1e-4)
+        assert np.abs(plain.predict(X) - a.predict(X)).max() > 1e-3
+    with pytest.raises(ConfigError, match="sample_weight"):
+        RobustGPIS().fit(X, y, sample_weight=np.zeros(30))
