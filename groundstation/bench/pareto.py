@@ -382,14 +382,25 @@ def fit_sklearn(scene: BenchScene) -> Fitted:
     return Fitted(predict, std**2, gpr, 0.0, fit_s, len(scene.y), {"kernel": str(gpr.kernel_)})
 
 
+def default_mapping(ndim: int):
+    """The default mapper's settings for a scene. The drone-geometry settings (length-scale
+    floor 0.35 m, signal variance cap, internal value -d_in/r) describe 3D flights; the 2D
+    paper shapes are a tenth of that scale (a 0.3 m square), so there they are the paper's."""
+    from groundstation.mapping.settings import MappingSettings
+
+    if ndim == 3:
+        return MappingSettings()
+    return MappingSettings(lengthscale_min=0.01, signal_var_max=1000.0, inside_value=-1.0)
+
+
 def fit_default(scene: BenchScene, spacing: float, core: dict, **surface_kw: Any) -> Any:
     """An unfitted default mapper (``SurfaceModel``) for the scene's region at ``spacing``."""
-    from groundstation.mapping.settings import MappingSettings, SurfaceSettings
+    from groundstation.mapping.settings import SurfaceSettings
 
     surface = SurfaceSettings(
         region_min=scene.region_min, region_max=scene.region_max, spacing=spacing, **surface_kw
     )
-    return core["model"].SurfaceModel(MappingSettings(), surface)
+    return core["model"].SurfaceModel(default_mapping(scene.ndim), surface)
 
 
 def fit_default_model(scene: BenchScene, core: dict) -> Fitted:

@@ -10,8 +10,10 @@ Pipeline per IMU sample (DESIGN.md §3):
 4. While in contact, at most ``contact_rate_hz``: a contact observation (y = 0) at the contact point
    ``x_c`` and an internal one (y = -1) at ``x_c - d_in n``, with the outward normal
    ``n = a / |a|``; ``x_c = x - r n`` when the horizontal part of n dominates, else ``x - h n``.
-5. While not in contact (and quiet for ``quiet_s``), at most ``external_rate_hz``: an external
-   observation (y = +1) at the vehicle position.
+5. While not in contact (and quiet for ``quiet_s``): an external observation (y = +1) at the
+   vehicle position every ``1 / external_rate_hz`` of data time (the paper's 0.5 Hz), and
+   also whenever the vehicle has moved ``external_spacing_m`` from the last one (the flown
+   path is what refutes a false contact; see ``ContactSettings``).
 
 Samples without a pose (mocap gap) still drive the filter and the contact state machine, but no
 observation can be placed: they are counted in ``stats.no_pose``.
@@ -126,6 +128,7 @@ class ContactDetector:
         self._last_contact_ns = -(2**62)
         self._last_contact_emit = -(2**62)
         self._last_external_emit = -(2**62)
+        self._last_external_pos: np.ndarray | None = None
         self._last_t: int | None = None
         self.events: list[ContactEvent] = []
         self.stats = DetectorStats()
@@ -209,12 +212,18 @@ class ContactDetector:
                     out.append(self._observe(t_ns, xc, LABEL_SURFACE, normal, ev.id, g))
                     out.append(self._observe(t_ns, xin, LABEL_INSIDE, normal, ev.id, g))
                     ev.observations += 2
-        elif t_ns - self._last_contact_ns >= int(
-            s.quiet_s * 1e9
-        ) and t_ns - self._last_external_emit >= int(1e9 / s.external_rate_hz):
+        elif t_ns - self._last_contact_ns >= int(s.quiet_s * 1e9):
+            due = t_ns - self._last_external_emit >= int(1e9 / s.external_rate_hz)
             if pos is None:
-                self.stats.no_pose += 1
-            else:
+                self.stats.no_pose += due
+            elif due or self._moved(pos):
                 self._last_external_emit = t_ns
+                self._last_external_pos = pos.copy()
                 out.append(self._observe(t_ns, pos.copy(), LABEL_OUTSIDE, np.zeros(3), -1, g))
         return out
+
+    def _moved(self, pos: np.ndarray) -> bool:
+        """Whether ``pos`` is ``external_spacing_m`` or more from the last external point."""
+        spacing = self.settings.external_spacing_m
+        last = self._last_external_pos
+        return spacing > 0 and last is not None and float(np.linalg.norm(pos - last)) >= spacing

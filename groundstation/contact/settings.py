@@ -36,6 +36,13 @@ class ContactSettings:
         Contact observations are emitted at most at this rate while in contact (paper: 25 Hz).
     external_rate_hz : float
         External (free-space) observations while not in contact (paper: 0.5 Hz).
+    external_spacing_m : float
+        ... and also whenever the vehicle has moved this far from the last external point
+        (0 = time only, the paper's rule). The path the drone flew is the only evidence that
+        refutes a false contact: a gust's phantom contact lies where the drone came from or
+        will fly through. Sampled by distance, that evidence grows with the path flown, not
+        with hover time, and merging (``mapping.merge``) bounds it by the volume explored.
+        On the bundled logs the paper's 0.5 Hz left every gust unflagged (fp recall 0).
     drone_radius_m, drone_height_m : float
         Radius r and height h of the cylinder circumscribing the drone (contact point rule).
     internal_depth_m : float
@@ -53,6 +60,7 @@ class ContactSettings:
     refractory_s: float = 0.25
     contact_rate_hz: float = 25.0
     external_rate_hz: float = 0.5
+    external_spacing_m: float = 0.1
     drone_radius_m: float = 0.2
     drone_height_m: float = 0.1
     internal_depth_m: float = 0.1
@@ -74,6 +82,6 @@ class ContactSettings:
                 raise ValueError(f"contact.{name} must be > 0, got {getattr(self, name)!r}")
         if not 0 < self.release_ratio <= 1:
             raise ValueError(f"contact.release_ratio must be in (0, 1], got {self.release_ratio!r}")
-        for name in ("refractory_s", "quiet_s"):
+        for name in ("refractory_s", "quiet_s", "external_spacing_m"):
             if getattr(self, name) < 0:
                 raise ValueError(f"contact.{name} must be >= 0, got {getattr(self, name)!r}")

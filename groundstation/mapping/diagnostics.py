@@ -175,6 +175,7 @@ def diagnose(
     surface: Any = None,
     field: np.ndarray | None = None,
     have_last_good: bool = False,
+    constraints: Sequence[str] = (),
 ) -> FitDiagnosis:
     """Check a fitted estimator for non-convergence and suspicious fits.
 
@@ -205,6 +206,10 @@ def diagnose(
         Grid values of the mean; any non-finite value is a failure.
     have_last_good : bool
         Whether the caller holds hyperparameters of an earlier reliable fit (selects the fallback).
+    constraints : sequence of str
+        Bounds set deliberately as modelling constraints, as ``"<name>_<lower|upper>"`` (e.g.
+        ``"lengthscale_lower"`` for a configured resolution floor): a value there is the
+        constraint acting, not a failed search; it is listed in ``details["constrained"]``.
 
     Returns
     -------
@@ -252,6 +257,9 @@ def diagnose(
             continue
         if name == "noise_var" and side == "lower":
             continue  # interpolating GPIS: normal (ALGORITHM.md §7.7), kept in details only
+        if f"{name}_{side}" in constraints:
+            details.setdefault("constrained", []).append(f"{name}_{side}")
+            continue
         if name == "alpha":
             if (side == "upper" or value >= alpha_plateau) and outliers_expected:
                 reasons.append("alpha_at_upper_bound")

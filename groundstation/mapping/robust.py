@@ -38,6 +38,12 @@ PATIENCE = 3  # ALGORITHM.md §5: tol met on 3 consecutive iterations
 # The GPIS initialisation only has to land in the right basin; the EM refines theta. A loose
 # tolerance halves its cost at n = 2700 (each L-BFGS-B evaluation is one factorisation).
 GPIS_INIT_MAX_ITER, GPIS_INIT_TOL = 50, 1e-4
+# init="auto": a cold fit that ends with alpha at or above this sits on the Gaussian plateau
+# (every u_i ~ beta/alpha, nothing can be flagged; ALGORITHM.md §7.3). It is then also started
+# from the heavy-tailed side, q(tau) = prior with a small beta (§7.1, beta0 = 0.02), and the
+# start with the higher final ELBO L2 wins (§7.6: compare optima on the ELBO).
+PLATEAU_ALPHA = 1e4
+HEAVY_START_BETA = 0.02
 
 
 # --------------------------------------------------------------------------- bound terms
@@ -273,8 +279,13 @@ class RobustGPIS:
         Exact joint (alpha, beta) maximiser of sum L4 (default) or the literal M1/M2 (§4.1).
     kernel_step : "rprop" | "lbfgs"
         One guarded rprop step or a few L-BFGS-B iterations per EM iteration (§4.2).
-    init : "gpis" | "prior"
-        Start from a homoscedastic GPIS fit (theta and q(f)) or from q(tau) = prior.
+    init : "auto" | "gpis" | "prior"
+        Start from a homoscedastic GPIS fit (theta and q(f)), from q(tau) = prior, or
+        ("auto", default) from the GPIS fit and, when that run ends on the Gaussian plateau
+        (alpha >= 1e4), also from q(tau) = IG(alpha, 0.02), keeping the higher final ELBO
+        (``init_used_`` tells which won). On a gusty 89-point SITL set the GPIS start
+        ended at alpha = 1e6 (ELBO -73.9, no contact distinguishable) and the heavy-tailed
+        start at alpha = 0.17 (ELBO -38.5, the gusts flagged).
     max_iter : int
         EM iteration limit.
     tol : float
@@ -314,7 +325,7 @@ class RobustGPIS:
         optimize: bool = True,
         noise_update: str = "direct",
         kernel_step: str = "rprop",
-        init: str = "gpis",
+        init: str = "auto",
         max_iter: int = 200,
         tol: float = 1e-6,
         beta_floor: float = 1e-6,
@@ -367,7 +378,7 @@ class RobustGPIS:
             "mu0": check_finite("prior_mean", self.prior_mean),
             "noise_update": check_choice("noise_update", self.noise_update, ("direct", "em")),
             "kernel_step": check_choice("kernel_step", self.kernel_step, ("rprop", "lbfgs")),
-            "init": check_choice("init", self.init, ("gpis", "prior")),
+            "init": check_choice("init", self.init, ("auto", "gpis", "prior")),
             "optimize": bool(self.optimize),
             "max_iter": check_int("max_iter", self.max_iter, 1),
             "tol": check_positive("tol", self.tol),
@@ -398,60 +409,20 @@ class RobustGPIS:
         D = sq_dists(X)
         prev = getattr(self, "posterior_", None)
         warm = self.warm_start and prev is not None and prev.X.shape[1] == X.shape[1]
-        step = np.full(2, RPROP_START)
-        if warm:
-            # ALGORITHM.md §8 "Streaming": previous (theta, alpha, beta) and q(tau) of kept rows;
-            # new rows start at q(tau_i) = IG(alpha + 1/2, beta + s_i/2) from predictive moments.
-            theta = np.clip(np.log([self.lengthscale_, self.signal_var_]), *cfg["bounds"].T)
-            alpha = float(np.clip(self.alpha_, *cfg["alpha_bounds"]))
-            beta = max(float(self.beta_), cfg["floor"])
-            k = _common_prefix(X, y, self.X_train_, self.y_train_)
-            at = np.full(n, alpha + 0.5)
-            bt = np.empty(n)
-            bt[:k] = self.beta_tilde_[:k]
-            at[:k] = self.alpha_tilde_[:k]
-            if k < n:
-                mean, std = prev.predict(X[k:], return_std=True, chunk_mb=cfg["chunk_mb"])
-                bt[k:] = beta + 0.5 * ((y[k:] - mean) ** 2 + std**2)
-            step = np.clip(getattr(self, "_rprop_step", step), 1e-3, RPROP_START)
-            K = se_from_sq_dists(D, *np.exp(theta))
-            fac = factorize(K, D, _prec(at / bt, c), r, mu0, math.exp(theta[0]))
-        elif cfg["init"] == "gpis":
-            # ALGORITHM.md §7.2: theta from a homoscedastic GPIS fit. q(tau) starts as for new
-            # data in §8 "Streaming", IG(alpha + 1/2, beta + s_i/2), with s_i from the GPIS
-            # leave-one-out predictive moments (R&W eq. 5.12): an in-sample GPIS posterior
-            # often interpolates the false contacts (noise at its lower bound), which leaves all
-            # s_i alike and the EM at the Gaussian limit alpha -> inf (§7.3).
-            g = fit_gpis(
-                D,
-                r,
-                mu0,
-                np.append(cfg["theta"], math.log(0.01)),
-                np.vstack([cfg["bounds"], np.log([1e-6, 1e1])]),
-                cfg["optimize"],
-                min(cfg["max_iter"], GPIS_INIT_MAX_ITER),
-                max(cfg["tol"], GPIS_INIT_TOL),
-            )
-            theta, K = g.theta[:2].copy(), g.K
-            p_ii = g.factor.diag_P
-            s_loo = (g.factor.a / p_ii) ** 2 + np.maximum(1.0 / p_ii - math.exp(g.theta[2]), 0.0)
-            alpha, beta = cfg["alpha"], cfg["beta"]
-            if cfg["noise_update"] == "direct":
-                alpha, beta = direct_update(s_loo, alpha, cfg["alpha_bounds"], cfg["floor"], c)
-            at, bt = np.full(n, alpha + 0.5), beta + 0.5 * s_loo
-            del g  # release the GPIS factorisation (n x n) before the EM
-            fac = factorize(K, D, _prec(at / bt, c), r, mu0, math.exp(theta[0]))
-        else:
-            # Paper: q(tau_i) = prior, w = alpha0 / beta0.
-            alpha, beta = cfg["alpha"], cfg["beta"]
-            theta = cfg["theta"].copy()
-            at = np.full(n, alpha)
-            bt = np.full(n, beta)
-            K = se_from_sq_dists(D, *np.exp(theta))
-            fac = factorize(K, D, _prec(at / bt, c), r, mu0, math.exp(theta[0]))
-
         em = _EMLoop(D, y, r, mu0, cfg, c)
-        state = em.run(theta, K, fac, at, bt, alpha, beta, step)
+        if warm:
+            state, init_used = em.run(*self._warm_start(cfg, X, y, D, r, c, prev)), "warm"
+        elif cfg["init"] == "auto":
+            state, init_used = em.run(*self._gpis_start(cfg, D, r, mu0, c)), "gpis"
+            if state["alpha"] >= PLATEAU_ALPHA:
+                heavy = em.run(*self._prior_start(cfg, D, r, mu0, c, HEAVY_START_BETA))
+                if heavy["trace"][-1] > state["trace"][-1]:
+                    state, init_used = heavy, "prior"
+                del heavy
+        elif cfg["init"] == "gpis":
+            state, init_used = em.run(*self._gpis_start(cfg, D, r, mu0, c)), "gpis"
+        else:
+            state, init_used = em.run(*self._prior_start(cfg, D, r, mu0, c, cfg["beta"])), "prior"
         theta, fac, at, bt, alpha, beta = (
             state["theta"],
             state["fac"],
@@ -460,6 +431,7 @@ class RobustGPIS:
             state["alpha"],
             state["beta"],
         )
+        self.init_used_ = init_used
         ell, sf2 = (float(v) for v in np.exp(theta))
         self.X_train_, self.y_train_ = X, y
         self.lengthscale_, self.signal_var_ = ell, sf2
@@ -480,6 +452,69 @@ class RobustGPIS:
                 stacklevel=2,
             )
         return self
+
+    # ------------------------------------------------------------------ starts
+    # Each returns the arguments of _EMLoop.run: (theta, K, fac, at, bt, alpha, beta, step).
+
+    def _warm_start(self, cfg, X, y, D, r, c, prev) -> tuple:
+        """ALGORITHM.md §8 "Streaming": previous (theta, alpha, beta) and q(tau) of kept rows;
+        new rows start at q(tau_i) = IG(alpha + 1/2, beta + s_i/2) from predictive moments."""
+        n = X.shape[0]
+        theta = np.clip(np.log([self.lengthscale_, self.signal_var_]), *cfg["bounds"].T)
+        alpha = float(np.clip(self.alpha_, *cfg["alpha_bounds"]))
+        beta = max(float(self.beta_), cfg["floor"])
+        k = _common_prefix(X, y, self.X_train_, self.y_train_)
+        at = np.full(n, alpha + 0.5)
+        bt = np.empty(n)
+        bt[:k] = self.beta_tilde_[:k]
+        at[:k] = self.alpha_tilde_[:k]
+        if k < n:
+            mean, std = prev.predict(X[k:], return_std=True, chunk_mb=cfg["chunk_mb"])
+            bt[k:] = beta + 0.5 * ((y[k:] - mean) ** 2 + std**2)
+        step = np.clip(getattr(self, "_rprop_step", np.full(2, RPROP_START)), 1e-3, RPROP_START)
+        K = se_from_sq_dists(D, *np.exp(theta))
+        fac = factorize(K, D, _prec(at / bt, c), r, cfg["mu0"], math.exp(theta[0]))
+        return theta, K, fac, at, bt, alpha, beta, step
+
+    @staticmethod
+    def _gpis_start(cfg, D, r, mu0, c) -> tuple:
+        """ALGORITHM.md §7.2: theta from a homoscedastic GPIS fit. q(tau) starts as for new
+        data in §8 "Streaming", IG(alpha + 1/2, beta + s_i/2), with s_i from the GPIS
+        leave-one-out predictive moments (R&W eq. 5.12): an in-sample GPIS posterior often
+        interpolates the false contacts (noise at its lower bound), which leaves all s_i alike
+        and the EM at the Gaussian limit alpha -> inf (§7.3)."""
+        n = D.shape[0]
+        g = fit_gpis(
+            D,
+            r,
+            mu0,
+            np.append(cfg["theta"], math.log(0.01)),
+            np.vstack([cfg["bounds"], np.log([1e-6, 1e1])]),
+            cfg["optimize"],
+            min(cfg["max_iter"], GPIS_INIT_MAX_ITER),
+            max(cfg["tol"], GPIS_INIT_TOL),
+        )
+        theta, K = g.theta[:2].copy(), g.K
+        p_ii = g.factor.diag_P
+        s_loo = (g.factor.a / p_ii) ** 2 + np.maximum(1.0 / p_ii - math.exp(g.theta[2]), 0.0)
+        alpha, beta = cfg["alpha"], cfg["beta"]
+        if cfg["noise_update"] == "direct":
+            alpha, beta = direct_update(s_loo, alpha, cfg["alpha_bounds"], cfg["floor"], c)
+        at, bt = np.full(n, alpha + 0.5), beta + 0.5 * s_loo
+        del g  # release the GPIS factorisation (n x n) before the EM
+        fac = factorize(K, D, _prec(at / bt, c), r, mu0, math.exp(theta[0]))
+        return theta, K, fac, at, bt, alpha, beta, np.full(2, RPROP_START)
+
+    @staticmethod
+    def _prior_start(cfg, D, r, mu0, c, beta0: float) -> tuple:
+        """Paper: q(tau_i) = prior IG(alpha0, beta0), w = alpha0 / beta0, theta = initial."""
+        n = D.shape[0]
+        alpha, beta = cfg["alpha"], max(float(beta0), cfg["floor"])
+        theta = cfg["theta"].copy()
+        at, bt = np.full(n, alpha), np.full(n, beta)
+        K = se_from_sq_dists(D, *np.exp(theta))
+        fac = factorize(K, D, _prec(at / bt, c), r, mu0, math.exp(theta[0]))
+        return theta, K, fac, at, bt, alpha, beta, np.full(2, RPROP_START)
 
     def predict(
         self, X: np.ndarray, return_std: bool = False

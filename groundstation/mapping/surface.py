@@ -68,6 +68,32 @@ class SurfaceMesh:
         )
 
 
+def confident_part(mesh: SurfaceMesh, max_std: float) -> SurfaceMesh:
+    """The faces of ``mesh`` whose three vertices have ``std <= max_std`` (unused vertices
+    dropped, indices renumbered). Far from any observation the GP mean relaxes to its prior
+    mean and crosses zero anywhere: those sheets are where the map knows nothing.
+
+    Parameters
+    ----------
+    mesh : SurfaceMesh with ``std``
+    max_std : float, label units
+
+    Returns
+    -------
+    SurfaceMesh
+    """
+    if mesh.std is None:
+        raise GridError("confident_part needs the vertex std (mesh(with_std=True))")
+    keep = np.all(mesh.std[mesh.faces] <= max_std, axis=1)
+    if keep.all():
+        return mesh
+    faces = mesh.faces[keep]
+    used = np.unique(faces)
+    index = np.full(len(mesh.vertices), -1, dtype=np.int64)
+    index[used] = np.arange(len(used))
+    return SurfaceMesh(mesh.vertices[used], index[faces], mesh.normals[used], mesh.std[used])
+
+
 def _check_field(values: np.ndarray, grid: Grid, what: str) -> np.ndarray:
     arr = np.asarray(values, dtype=np.float64)
     if arr.shape != grid.shape:

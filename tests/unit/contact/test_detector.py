@@ -139,6 +139,28 @@ def test_external_points_follow_the_data_clock_at_half_a_hertz():
     assert np.diff([o.t_ns for o in ext]).min() == 2_000_000_000
 
 
+def test_external_points_also_follow_the_path_flown():
+    """Moving at 0.5 m/s with a 0.1 m spacing: one point per 0.1 m of path (5 Hz), not the
+    clock's 0.5 Hz; hovering falls back to the clock; spacing 0 is the paper's rule."""
+    n = 200 * 10
+    path = [np.array([1.0 + 0.5 * k * DT / 1e9, 2.0, 1.0]) for k in range(n)]
+
+    def external(settings, positions):
+        det = ContactDetector(settings)
+        obs = []
+        for k, p in enumerate(positions):
+            obs += det.update(k * DT, np.zeros(3), p)
+        return [o for o in obs if o.label == 1.0]
+
+    moving = external(ContactSettings(external_spacing_m=0.1), path)
+    gaps = np.linalg.norm(np.diff([o.position for o in moving], axis=0), axis=1)
+    assert 45 <= len(moving) <= 51 and gaps.min() >= 0.1 - 1e-9 and gaps.max() < 0.11
+    hover = external(ContactSettings(external_spacing_m=0.1), [path[0]] * n)
+    assert len(hover) == 5  # the 0.5 Hz clock alone
+    paper = external(ContactSettings(external_spacing_m=0.0), path)
+    assert len(paper) == 5
+
+
 def test_no_external_points_right_after_a_contact():
     det = ContactDetector(ContactSettings(quiet_s=1.0, external_rate_hz=50.0))
     obs = run(det, pulse(20, 20, 400, [2.0, 0, 0]))

@@ -69,6 +69,16 @@ def test_lengthscale_pinned_at_its_upper_bound():
     assert diag.details["lengthscale_at_bound"] == "upper"
 
 
+def test_a_configured_constraint_at_its_bound_is_not_a_failure():
+    """The mapper's resolution floor / signal-variance cap are set on purpose: a fit resting
+    on them is the constraint acting (listed in details), unlike a wide search bound."""
+    m = _fit(RobustGPIS(lengthscale=0.05, lengthscale_bounds=(0.01, 0.1)), _data())
+    diag = diagnose(m, constraints=("lengthscale_upper",))
+    assert "lengthscale_at_upper_bound" not in diag.reasons
+    assert diag.details["constrained"] == ["lengthscale_upper"]
+    assert "lengthscale_at_upper_bound" in diagnose(m, constraints=("lengthscale_lower",)).reasons
+
+
 def test_signal_variance_at_its_lower_bound():
     m = _fit(RobustGPIS(signal_var=2.0, signal_var_bounds=(1.9, 100.0)), _data())
     if m.signal_var_ > 1.9 * 1.01:
