@@ -32,6 +32,14 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
         "groundstation.bench.stability",
         "sweeps where GPIS and robust GPIS break down, and whether failures are detected",
     ),
+    ("live",): (
+        "groundstation.live_cli",
+        "fly a live session: link, mocap, joystick, detector, mapper, viewer, recorder",
+    ),
+    ("replay",): (
+        "groundstation.replay_cli",
+        "run the mapping pipeline on a recording: mesh, per-observation table, report",
+    ),
     ("config", "show"): ("groundstation.config_cli", "print the effective configuration as TOML"),
     ("record",): (
         "groundstation.acquisition.record_cli",

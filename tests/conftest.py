@@ -25,6 +25,7 @@ def external_data() -> Path:
     if not EXTERNAL_DATA.is_dir():
         pytest.skip(
             f"external data not found at {EXTERNAL_DATA} "
-            "(set GS_EXTERNAL_DATA to the folder holding natnet_capture/, aggressive_flight/, px4_ulog/)"
+            "(set GS_EXTERNAL_DATA to the folder holding natnet_capture/, aggressive_flight/, "
+            "px4_ulog/)"
         )
     return EXTERNAL_DATA

@@ -2,11 +2,17 @@
 
 groundstation sitl [--scene NAME|FILE] [--link pty|udp://HOST:PORT] [--mocap udp://HOST:PORT]
                    [--pilot script:NAME|manual] [--speed X] [--seed N] [--duration SECONDS]
-                   [--truth FILE] [--record LOG.mcap]
+                   [--truth FILE] [--record LOG.mcap] [--log-commands FILE]
 
 With ``--speed max --record LOG.mcap`` no transport is opened: the run is written straight to an
 MCAP recording in the station's layout, with simulated receive times and the truth embedded
 (:mod:`groundstation.acquisition.sim_recording`).
+
+``--log-commands FILE`` writes one JSON line per MANUAL_CONTROL as it arrives on the wire
+(``{"kind": "manual", "t_ns": <monotonic receive time>, "sim_t": <s>, "x", "y", "z", "r",
+"buttons"}``) and one per vehicle mode change (``{"kind": "mode", "t_ns", "sim_t", "mode"}``,
+MANUAL / HOLD / LAND / LANDED), flushed per line, for measuring the station's send rate and
+failsafe behaviour from outside the station.
 """
 
 from __future__ import annotations
@@ -20,6 +26,8 @@ import time
 from pathlib import Path
 
 from firmware_bridge.errors import BridgeError
+from firmware_bridge.mavlink import MavlinkCodec
+from firmware_bridge.mavlink.messages import ManualControl
 from firmware_bridge.sitl.gusts import GustParams
 from firmware_bridge.sitl.runner import MocapSettings, Simulation, run_paced
 from firmware_bridge.sitl.scene import load_scene, named_scenes
@@ -92,6 +100,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="LOG.mcap",
         help="with --speed max: write the session straight to this recording (no transports)",
     )
+    parser.add_argument(
+        "--log-commands",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="JSON lines: receive time of each MANUAL_CONTROL and each vehicle mode change",
+    )
     parser.add_argument("--mocap-up", choices=("y", "z"), default="y", help="Motive up axis")
     parser.add_argument(
         "--mocap-drop",
@@ -106,6 +121,57 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="METRES",
         help="mocap position noise, 1 sigma",
     )
+
+
+class CommandLog:
+    """Wraps the uplink source: logs each MANUAL_CONTROL's wire arrival and each mode change.
+
+    The bytes go on to the simulation unchanged; a second codec only watches them (the uplink
+    carries tens of frames per second, so decoding twice is cheap).
+    """
+
+    def __init__(self, source, path: Path, sim: Simulation):
+        self.source, self.sim = source, sim
+        self.codec = MavlinkCodec(system_id=1, component_id=1)
+        self.fh = open(path, "w", encoding="utf-8", buffering=1)  # noqa: SIM115 - closed in close()
+        self._modes = 0
+        self.manual = 0
+
+    def fileno(self) -> int:
+        return self.source.fileno()
+
+    def flush(self) -> None:
+        self.source.flush()
+
+    def _line(self, **rec: object) -> None:
+        self.fh.write(json.dumps(rec, separators=(",", ":")) + "\n")
+
+    def recv(self) -> bytes:
+        data = self.source.recv()
+        if data:
+            t_ns = time.monotonic_ns()
+            for rec in self.codec.decode(data, t_ns):
+                if isinstance(rec, ManualControl):
+                    self.manual += 1
+                    self._line(
+                        kind="manual", t_ns=t_ns, sim_t=round(self.sim.vehicle.t, 4), x=rec.x,
+                        y=rec.y, z=rec.z, r=rec.r, buttons=rec.buttons,
+                    )  # fmt: skip
+        self.modes()
+        return data
+
+    def modes(self) -> None:
+        """Log mode changes of the manual-flight state machine since the last call."""
+        manual = self.sim.vehicle.manual
+        if manual is None:
+            return
+        for t, mode in manual.transitions[self._modes :]:
+            self._line(kind="mode", t_ns=time.monotonic_ns(), sim_t=round(t, 4), mode=mode)
+        self._modes = len(manual.transitions)
+
+    def close(self) -> None:
+        self.modes()
+        self.fh.close()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -156,6 +222,7 @@ def _run(args: argparse.Namespace) -> int:
         print(f"SITL MAVLink to {args.link} (local port {link.local_port})", flush=True)  # type: ignore[union-attr]
     if mocap_tx is not None:
         print(f"SITL NatNet 4.1 to {args.mocap}", flush=True)
+    uplink = link if args.log_commands is None else CommandLog(link, args.log_commands, sim)
     print(
         f"scene {scene.name}, pilot {pilot}, seed {args.seed}, speed {args.speed}",
         file=sys.stderr,
@@ -181,6 +248,8 @@ def _run(args: argparse.Namespace) -> int:
         return False
 
     def status(t: float) -> None:
+        if isinstance(uplink, CommandLog):
+            uplink.modes()
         st = sim.stats
         dropped = link.stats.frames_dropped + (mocap_tx.stats.frames_dropped if mocap_tx else 0)
         print(
@@ -193,8 +262,10 @@ def _run(args: argparse.Namespace) -> int:
 
     wall0 = time.monotonic()
     try:
-        run_paced(sim, sinks, [link], args.speed, stop, status)
+        run_paced(sim, sinks, [uplink], args.speed, stop, status)
     finally:
+        if isinstance(uplink, CommandLog):
+            uplink.close()
         for s, h in old.items():
             signal.signal(s, h)
         if isinstance(link, PtyTransport):

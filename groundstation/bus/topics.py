@@ -4,7 +4,7 @@ Drop policies (enforced by the socket shells in :mod:`groundstation.bus.pubsub`)
 
 - ``"lossless"``: raw bytes, samples, observations and events. Never dropped by the bus
   (unbounded high-water mark); sequence gaps on these topics are faults.
-- ``"latest"``: state that a newer message supersedes (mesh, fit, status, health, setpoints).
+- ``"latest"``: state that a newer message supersedes (mesh, fit, status, health).
   A small high-water mark bounds memory; a slow subscriber loses intermediate values and the
   gap counter shows how many.
 
@@ -215,16 +215,25 @@ _TABLE = [
         "peak_g": Field("float")},
        {"position_m": _VEC3, "normal": _VEC3},
        "A contact began or ended: drone position (m, world), outward unit normal, peak |a| in G."),
-    _t("observations", "observation", 1, "detector", "lossless", "data",
-       {"id": Field("int"), "label": Field("int", choices=(-1, 0, 1))},
+    _t("observations", "observation", 2, "detector", "lossless", "data",
+       {"id": Field("int"), "label": Field("int", choices=(-1, 0, 1)),
+        "event_id": Field("int", optional=True), "accel_g": Field("float", optional=True)},
        {"x_m": _VEC3, "normal": _VEC3},
        "One GPIS observation: point x (m, world), label y (0 surface, -1 inside, +1 outside), "
-       "outward unit normal (zeros for external points); source_ns: the data time it refers to."),
-    _t("mapper.fit", "mapper_fit", 1, "mapper", "latest", "state",
-       {"fit_index": Field("int")},
+       "outward unit normal (zeros for external points); source_ns: the data time it refers to "
+       "(station axis, ns); event_id: the contact event of a contact/internal point (-1 for "
+       "external points); accel_g: filtered |a| in G when it was emitted."),
+    _t("mapper.fit", "mapper_fit", 2, "mapper", "latest", "state",
+       {"fit_index": Field("int"), "reliable": Field("bool", optional=True),
+        "reasons": Field("list", optional=True), "data_ns": Field("int", optional=True),
+        "lag_s": Field("float", optional=True), "fit_s": Field("float", optional=True),
+        "hyperparameters": Field("dict", optional=True)},
        {"ids": Array(_INT, ("n",)), "u": Array(_FLOAT, ("n",)), "flags": Array(("|u1",), ("n",))},
        "Per-observation uncertainty u_i = beta~_i/alpha~_i and flag bits after a refit "
-       "(bit 0 = flagged false-positive contact)."),
+       "(bit 0 = flagged false-positive contact). reliable/reasons: the fit diagnosis "
+       "(mapping.diagnostics; an unreliable fit keeps the last good mesh); data_ns: data time "
+       "of the newest observation in the fit; lag_s: data time received minus data_ns when "
+       "published; fit_s: wall seconds of the refit; hyperparameters: lengthscale, ..."),
     _t("mesh", "mesh", 1, "mapper", "latest", "state",
        {"fit_index": Field("int")},
        {"vertices": Array(_FLOAT, ("v", 3)), "triangles": Array(_INT, ("t", 3)),
@@ -234,10 +243,15 @@ _TABLE = [
        {"process": Field("str"), "state": Field("str"), "topics": Field("dict"),
         "text": Field("str", optional=True)}, {},
        "Per-process status: state and per-topic counters (rate_hz, received, gaps, ...)."),
-    _t("pilot.command", "pilot_command", 1, "pilot", "latest", "state",
+    # Lossless, not latest-value: every command is recorded with the session (issue 6) and the
+    # link turns each one into exactly one MANUAL_CONTROL. A stalled link cannot replay a stale
+    # backlog: it drops commands older than its max command age (source_ns = the pilot's tick
+    # time, same monotonic clock), so "commands stop -> MANUAL_CONTROL stops" still holds.
+    _t("pilot.command", "pilot_command", 1, "pilot", "lossless", "data",
        {"x": Field("int"), "y": Field("int"), "z": Field("int"), "r": Field("int"),
         "buttons": Field("int"), "enabled": Field("bool")}, {},
-       "Shaped MANUAL_CONTROL setpoint (-1000..1000; z 0..1000); a newer one supersedes."),
+       "Shaped MANUAL_CONTROL setpoint (-1000..1000; z 0..1000), one per pilot tick while armed; "
+       "source_ns: the pilot's tick time (station monotonic)."),
     _t("pilot.event", "pilot_event", 1, "pilot", "lossless", "event",
        {"event": Field("str"), "text": Field("str", optional=True)}, {},
        "Pilot path events: device lost/found, failsafe engaged/cleared, e-stop."),

@@ -1,0 +1,465 @@
+"""The mapper core (pure): training set, data-clock refit schedule, warm refits, flags, mesh.
+
+:class:`Mapper` keeps every observation it was given (by id; a repeated id is ignored), decides
+from the *data* clock when a refit is due, refits the default surface model
+(:class:`~groundstation.mapping.model.SurfaceModel`: merge, exact/sparse robust GPIS warm-started
+from the previous fit, narrow-band mesh) on everything received so far, checks the fit
+(:func:`~groundstation.mapping.diagnostics.diagnose`) and returns a :class:`FitResult`. The mapper
+process (``mapping/process.py``) and the offline pipeline run this same object.
+
+Schedule (:meth:`Mapper.due`)
+-----------------------------
+A refit is due when at least ``min_contacts`` contact observations and one external one are
+held, something new arrived since the last fit, and either ``refit_min_new`` new observations
+arrived or the data time advanced ``refit_period_s`` past the data time of the last fit (for
+the first fit: past the first observation). Time is the observations' ``t_ns`` (station axis),
+never the wall clock, so a replay at any speed refits at the same data times. A refit always
+uses *all* observations held when it starts: if the process falls behind, the next refit
+simply covers more data (skip ahead) and the lag is ``data_ns - FitResult.data_ns``.
+
+False-positive flags (rule on u_i)
+----------------------------------
+Only contacts (y = 0) can be false (ALGORITHM.md §7.5). A contact observation is *suspect* when
+
+    u_i > beta / (alpha + 1/2) + flag_u
+
+i.e. when its u exceeds by ``flag_u`` the value u takes for a datum the fit explains exactly
+(E3/E4 with s_i = 0; ~beta at its floor, 1e-6, in a heavy-tailed fit). A fit on the Gaussian
+plateau (alpha >= 1e4, ALGORITHM.md §7.3) gives every datum the same u: it flags nothing. (An
+earlier rule also asked for u_i > 3 x the median contact u; in a gusty session where false
+contacts are the majority of contacts it flagged nothing at all.) A contact *event* is flagged
+when at least ``flag_event_fraction`` of its contact observations are suspect; then every contact
+and internal observation of that event carries flag bit 0. A suspect contact of an unflagged
+event is flagged with its paired internal point (same event, same time). External points are
+never flagged. ``flag_u`` = 0.3 is measured on 11 SITL sessions (``replay_logs/`` and 8 more
+seeds): true touches stay below it, false contacts refuted by the flown path reach 0.5-0.7.
+
+Failure handling
+----------------
+An exception in the fit, or a fit :func:`diagnose` finds unreliable (``not_converged`` is not
+counted for warm refits, which are capped at ``mapping.refit_max_iter`` by design), keeps the
+last good mesh and flags, marks the result ``reliable=False`` with the reasons, and tries the
+documented fallback once (``diagnostics.FALLBACKS``): ``fixed_theta`` refits a fresh model from
+the last good hyperparameters with ``optimize=False``; ``gpis_init`` refits a fresh model cold
+from the paper's initial values. A reliable fallback fit replaces the model for later refits.
+
+Restart: :meth:`Mapper.restore` rebuilds the training set from the observations seen so far
+(from the recording of the ``observations`` topic); nothing is lost.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Iterable
+
+import numpy as np
+
+from groundstation.contact.detector import Observation
+from groundstation.errors import ConfigError, GroundstationError
+from groundstation.mapping.diagnostics import diagnose
+from groundstation.mapping.settings import MappingSettings, SurfaceSettings
+from groundstation.mapping.surface import SurfaceMesh
+
+FLAG_FALSE_POSITIVE = 1  # mapper.fit flag bit 0
+
+
+@dataclasses.dataclass(frozen=True)
+class MapperSettings:
+    """Refit schedule, flag rule and failure handling of the mapper.
+
+    Attributes
+    ----------
+    refit_period_s : float
+        Refit after this much data time since the last fit's data (seconds).
+    refit_min_new : int
+        ... or after this many new observations, whichever comes first.
+    min_contacts : int
+        Contact observations needed before the first fit.
+    flag_u : float
+        Margin of the flag rule above the fit's noise floor, label units^2 (module docstring).
+    flag_event_fraction : float
+        Fraction of an event's contacts that must be suspect to flag the whole event.
+    flag_fraction_max : float
+        More suspect contacts than this fraction makes the fit unreliable (the model rejects
+        the data instead of fitting it). 0.9: a gusty session legitimately reaches 0.86.
+    expect_outliers : bool
+        ``diagnose``: treat the Gaussian plateau (alpha at its bound) as a failure. Off by
+        default: a session with no false contact legitimately sits there.
+    fallback : bool
+        Try the diagnosed fallback refit when a fit is unreliable.
+    with_mesh : bool
+        Extract the mesh on every refit (off: only ``u`` and flags).
+    """
+
+    refit_period_s: float = 2.0
+    refit_min_new: int = 30
+    min_contacts: int = 2
+    flag_u: float = 0.3
+    flag_event_fraction: float = 0.5
+    flag_fraction_max: float = 0.9
+    expect_outliers: bool = False
+    fallback: bool = True
+    with_mesh: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("refit_period_s", "flag_u"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"mapper.{name} must be > 0, got {getattr(self, name)!r}")
+        for name in ("refit_min_new", "min_contacts"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ConfigError(f"mapper.{name} must be an integer >= 1, got {v!r}")
+        for name in ("flag_event_fraction", "flag_fraction_max"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ConfigError(f"mapper.{name} must be in (0, 1], got {getattr(self, name)!r}")
+
+
+@dataclasses.dataclass
+class FitResult:
+    """One refit.
+
+    Attributes
+    ----------
+    fit_index : int
+        0, 1, ... per refit attempt.
+    data_ns : int
+        Data time of the newest observation in the fit (station axis, ns).
+    ids, u : (n,) int64, float64
+        Every observation id held and its u_i (members of a merged cell share its u).
+    flags : (n,) uint8
+        Flag bits (bit 0: flagged false-positive contact).
+    flagged_events : tuple of int
+        Contact event ids flagged as false positives.
+    mesh : SurfaceMesh or None
+        This fit's mesh, or the last good one when this fit is unreliable (None before any).
+    mesh_fit_index : int
+        Fit index the mesh belongs to (-1 when there is none).
+    timings : dict
+        Seconds: ``fit_s``, ``mesh_s``, ``total_s`` (wall clock, for reports only).
+    hyperparameters : dict
+        lengthscale, signal_var, alpha, beta, mode, n_train.
+    reliable : bool
+    reasons : tuple of str
+        Why not reliable (diagnostics reason strings, or ``fit_error: ...``).
+    fallback : str
+        Fallback tried ("none" if none).
+    """
+
+    fit_index: int
+    data_ns: int
+    ids: np.ndarray
+    u: np.ndarray
+    flags: np.ndarray
+    flagged_events: tuple[int, ...]
+    mesh: SurfaceMesh | None
+    mesh_fit_index: int
+    timings: dict
+    hyperparameters: dict
+    reliable: bool
+    reasons: tuple[str, ...]
+    fallback: str = "none"
+
+
+def default_model_factory(mapping: MappingSettings, surface: SurfaceSettings):
+    """The surface model the mapper fits (the one line to change to switch models)."""
+    from groundstation.mapping.model import SurfaceModel
+
+    return SurfaceModel(mapping, surface)
+
+
+class Mapper:
+    """Training set + schedule + refits (see the module docstring).
+
+    Parameters
+    ----------
+    settings : MapperSettings
+    mapping : MappingSettings
+    surface : SurfaceSettings
+    model_factory : callable, optional
+        ``(mapping, surface) -> model`` with ``fit(X, y, ids, t_ns)``, ``mesh()``,
+        ``uncertainty_by_id()``, ``timings_``, ``mode_``, ``fit_`` (default: SurfaceModel).
+    """
+
+    def __init__(
+        self,
+        settings: MapperSettings | None = None,
+        mapping: MappingSettings | None = None,
+        surface: SurfaceSettings | None = None,
+        model_factory: Callable | None = None,
+    ) -> None:
+        self.settings = settings or MapperSettings()
+        self.mapping = mapping or MappingSettings()
+        self.surface = surface or SurfaceSettings()
+        self._factory = model_factory or default_model_factory
+        self._model = self._factory(self.mapping, self.surface)
+        self._obs: dict[int, Observation] = {}
+        self._new = 0
+        self._n_contacts = 0
+        self._n_external = 0
+        self.data_ns: int | None = None  # newest observation time held
+        self._first_ns: int | None = None
+        self._last_fit_ns: int | None = None
+        self.fit_index = -1
+        self.duplicates = 0
+        self.last_good: FitResult | None = None
+        self._last_good_theta: dict[str, float] | None = None
+
+    # -- training set --------------------------------------------------------------------------
+    def add(self, observations: Iterable[Observation]) -> int:
+        """Add observations (any order); a repeated id is ignored. Returns how many were new."""
+        n = 0
+        for o in observations:
+            if o.id in self._obs:
+                self.duplicates += 1
+                continue
+            self._obs[o.id] = o
+            n += 1
+            if o.label == 0:
+                self._n_contacts += 1
+            elif o.label > 0:
+                self._n_external += 1
+            t = int(o.t_ns)
+            self.data_ns = t if self.data_ns is None else max(self.data_ns, t)
+            self._first_ns = t if self._first_ns is None else min(self._first_ns, t)
+        self._new += n
+        return n
+
+    @classmethod
+    def restore(cls, observations: Iterable[Observation], *args, **kwargs) -> Mapper:
+        """A mapper rebuilt from the observations seen before a restart (no refit yet)."""
+        m = cls(*args, **kwargs)
+        m.add(observations)
+        return m
+
+    def __len__(self) -> int:
+        return len(self._obs)
+
+    @property
+    def pending(self) -> int:
+        """Observations received since the last refit."""
+        return self._new
+
+    def observations(self) -> list[Observation]:
+        """Every observation held, by id."""
+        return [self._obs[k] for k in sorted(self._obs)]
+
+    # -- schedule ------------------------------------------------------------------------------
+    def due(self, t_ns: int | None = None) -> bool:
+        """Whether a refit is due at data time ``t_ns`` (default: the newest observation's)."""
+        s = self.settings
+        if self._new == 0 or self._n_contacts < s.min_contacts or self._n_external < 1:
+            return False
+        if self._new >= s.refit_min_new:
+            return True
+        t = self.data_ns if t_ns is None else int(t_ns)
+        ref = self._last_fit_ns if self._last_fit_ns is not None else self._first_ns
+        return t - ref >= int(s.refit_period_s * 1e9)
+
+    def ready(self) -> bool:
+        """Enough data for a fit (used for the final refit at the end of a replay)."""
+        s = self.settings
+        return self._n_contacts >= s.min_contacts and self._n_external >= 1
+
+    # -- refit ---------------------------------------------------------------------------------
+    def refit(self) -> FitResult:
+        """Refit on every observation held (see the module docstring). Never raises for a
+        failed fit: the result is then ``reliable=False`` and keeps the last good mesh."""
+        obs = self.observations()
+        self.fit_index += 1
+        self._new = 0
+        data_ns = max(o.t_ns for o in obs) if obs else 0
+        self._last_fit_ns = data_ns
+        ids = np.array([o.id for o in obs], dtype=np.int64)
+        X = np.array([o.position for o in obs], dtype=np.float64).reshape(-1, 3)
+        y = np.array([o.label for o in obs], dtype=np.float64)
+        t_ns = np.array([o.t_ns for o in obs], dtype=np.int64)
+        t0 = time.perf_counter()
+        result = self._attempt(self._model, X, y, ids, t_ns, warm=self.fit_index > 0)
+        fallback = "none"
+        if not result[0] and self.settings.fallback and result[3] is not None:
+            fallback = result[3]
+            alt = self._fallback_model(fallback)
+            if alt is not None:
+                alt_result = self._attempt(alt, X, y, ids, t_ns, warm=False)
+                if alt_result[0]:
+                    self._model, result = alt, alt_result
+        ok, reasons, mesh, _, hyper, timings = result
+        timings["total_s"] = time.perf_counter() - t0
+        if ok:
+            u_ids, u = self._model.uncertainty_by_id()
+            u_by_id = dict(
+                zip(u_ids.tolist(), np.asarray(u, dtype=np.float64).tolist(), strict=True)
+            )
+            u_arr = np.array([u_by_id.get(i, np.nan) for i in ids.tolist()], dtype=np.float64)
+            flags, events = flag_observations(obs, u_arr, self.settings, **_noise_floor(hyper))
+            res = FitResult(
+                self.fit_index, data_ns, ids, u_arr, flags, events, mesh, self.fit_index,
+                timings, hyper, True, (), fallback,
+            )  # fmt: skip
+            self.last_good = res
+            self._last_good_theta = {
+                k: hyper[k] for k in ("lengthscale", "signal_var", "alpha", "beta") if k in hyper
+            }
+            return res
+        # unreliable: keep the last good mesh and per-id values (new ids: u nan -> 0, no flag)
+        lg = self.last_good
+        u_arr = np.zeros(len(ids))
+        flags = np.zeros(len(ids), dtype=np.uint8)
+        events: tuple[int, ...] = ()
+        if lg is not None:
+            pos = {i: k for k, i in enumerate(lg.ids.tolist())}
+            for k, i in enumerate(ids.tolist()):
+                if i in pos:
+                    u_arr[k] = lg.u[pos[i]]
+                    flags[k] = lg.flags[pos[i]]
+            events = lg.flagged_events
+        return FitResult(
+            self.fit_index, data_ns, ids, u_arr, flags, events,
+            None if lg is None else lg.mesh, -1 if lg is None else lg.mesh_fit_index,
+            timings, hyper, False, reasons, fallback,
+        )  # fmt: skip
+
+    def _attempt(self, model, X, y, ids, t_ns, warm: bool):
+        """(ok, reasons, mesh, fallback key, hyperparameters, timings) of one fit."""
+        s = self.settings
+        timings: dict[str, float] = {}
+        hyper: dict = {}
+        t0 = time.perf_counter()
+        try:
+            model.fit(X, y, ids, t_ns)
+            timings["fit_s"] = time.perf_counter() - t0
+            hyper = _hyperparameters(model)
+            mesh = None
+            if s.with_mesh:
+                t1 = time.perf_counter()
+                mesh = model.mesh()
+                timings["mesh_s"] = time.perf_counter() - t1
+            diag = diagnose(
+                model,
+                flag_fraction_max=1.0,  # our own relative rule is checked below
+                flag_u=s.flag_u,
+                outliers_expected=s.expect_outliers,
+                surface=mesh,
+                have_last_good=self._last_good_theta is not None,
+                constraints=_constraints(self.mapping),
+            )
+        except (GroundstationError, ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
+            timings.setdefault("fit_s", time.perf_counter() - t0)
+            return False, (f"fit_error: {exc}",), None, "gpis_init", hyper, timings
+        skip = {"too_many_flagged"} | ({"not_converged"} if warm else set())
+        reasons = [r for r in diag.reasons if r not in skip]
+        u_ids, u = model.uncertainty_by_id()
+        labels = {o_id: lab for o_id, lab in zip(ids.tolist(), y.tolist(), strict=True)}
+        uc = np.array([v for i, v in zip(u_ids.tolist(), u, strict=True) if labels.get(i) == 0])
+        floor = _noise_floor(hyper)
+        if uc.size and np.all(np.isfinite(uc)) and not floor["plateau"]:
+            if float(np.mean(uc > floor["u_floor"] + s.flag_u)) > s.flag_fraction_max:
+                reasons.append("too_many_flagged")
+        reasons = tuple(reasons)
+        if not reasons:
+            return True, (), mesh, None, hyper, timings
+        return False, reasons, None, diag.fallback, hyper, timings
+
+    def _fallback_model(self, key: str):
+        if key == "fixed_theta" and self._last_good_theta:
+            th = self._last_good_theta
+            mapping = dataclasses.replace(
+                self.mapping,
+                optimize=False,
+                **{k: float(v) for k, v in th.items() if k in ("lengthscale", "signal_var")},
+                **{k: float(v) for k, v in th.items() if k in ("alpha", "beta") and v > 0},
+            )
+            return self._factory(mapping, self.surface)
+        if key == "gpis_init":
+            return self._factory(self.mapping, self.surface)  # fresh, cold: paper's initial values
+        return None
+
+
+def _constraints(mapping: MappingSettings) -> tuple[str, ...]:
+    """Configured kernel bounds that act as modelling constraints (``diagnose``): the length
+    scale floor (map resolution) and the signal variance cap, when set inside the estimators'
+    own search bounds (1e-2 m, 1e3)."""
+    out = []
+    if mapping.lengthscale_min > 1e-2:
+        out.append("lengthscale_lower")
+    if mapping.signal_var_max < 1e3:
+        out.append("signal_var_upper")
+    return tuple(out)
+
+
+def _hyperparameters(model) -> dict:
+    est = getattr(model, "fit_", model)
+    out: dict = {}
+    for name in ("lengthscale", "signal_var", "alpha", "beta", "noise_var"):
+        v = getattr(est, name + "_", None)
+        if v is not None and np.isfinite(v):
+            out[name] = float(v)
+    out["mode"] = str(getattr(model, "mode_", "exact"))
+    n = getattr(model, "n_train_", None)
+    if n is not None:
+        out["n_train"] = int(n)
+    return out
+
+
+#: alpha at or above this: the Gaussian plateau, where every u_i is alike (ALGORITHM.md §7.3).
+PLATEAU_ALPHA = 1e4
+
+
+def _noise_floor(hyper: dict) -> dict:
+    """``u_floor`` = beta / (alpha + 1/2) and ``plateau`` of a fit's hyperparameters (a GPIS
+    fit has neither: floor 0, no plateau)."""
+    alpha, beta = hyper.get("alpha"), hyper.get("beta")
+    if alpha is None or beta is None:
+        return {"u_floor": 0.0, "plateau": False}
+    return {"u_floor": float(beta) / (float(alpha) + 0.5), "plateau": alpha >= PLATEAU_ALPHA}
+
+
+def flag_observations(
+    obs: list[Observation],
+    u: np.ndarray,
+    settings: MapperSettings,
+    u_floor: float = 0.0,
+    plateau: bool = False,
+) -> tuple[np.ndarray, tuple[int, ...]]:
+    """Flag bits per observation and the flagged event ids (rule in the module docstring).
+
+    Parameters
+    ----------
+    obs : list of Observation, length n
+    u : (n,) float64
+        u_i of each observation (NaN: unknown, never suspect).
+    settings : MapperSettings
+    u_floor : float
+        The fit's beta / (alpha + 1/2) (label units^2).
+    plateau : bool
+        The fit sits on the Gaussian plateau: nothing is flagged.
+
+    Returns
+    -------
+    flags : (n,) uint8
+    events : tuple of int, sorted
+    """
+    u = np.asarray(u, dtype=np.float64)
+    labels = np.array([o.label for o in obs], dtype=np.float64)
+    contact = labels == 0
+    flags = np.zeros(len(obs), dtype=np.uint8)
+    if not np.any(contact) or plateau:
+        return flags, ()
+    with np.errstate(invalid="ignore"):
+        suspect = contact & np.isfinite(u) & (u > u_floor + settings.flag_u)
+    per_event: dict[int, list[bool]] = {}
+    for k, o in enumerate(obs):
+        if contact[k] and o.event_id >= 0:
+            per_event.setdefault(o.event_id, []).append(bool(suspect[k]))
+    events = tuple(
+        sorted(e for e, s in per_event.items() if np.mean(s) >= settings.flag_event_fraction)
+    )
+    flagged_events = set(events)
+    suspect_keys = {(o.event_id, o.t_ns) for k, o in enumerate(obs) if suspect[k]}
+    for k, o in enumerate(obs):
+        if o.label > 0:
+            continue
+        if o.event_id in flagged_events or (o.event_id, o.t_ns) in suspect_keys:
+            flags[k] |= FLAG_FALSE_POSITIVE
+    return flags, events

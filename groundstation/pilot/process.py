@@ -1,0 +1,270 @@
+"""The pilot process: joystick device shell + pure commander at a fixed rate, on the session bus.
+
+``python -m groundstation.pilot.process --session ID --device /dev/input/js0 [--rate HZ]
+[--calibration FILE] [--wait-subscribers N] [--config FILE] [--set pilot.KEY=VALUE ...]``
+
+- :class:`~groundstation.pilot.jsdev.JoystickDevice` reads the device (or a FIFO) in its own
+  thread; :func:`~groundstation.pilot.loop.run_pilot_loop` ticks the pure
+  :class:`~groundstation.pilot.commander.Commander` on absolute deadlines at ``pilot.rate_hz``
+  (default 25 Hz, at most 50) in the main thread, and every tick is handed to :meth:`emit`.
+- :meth:`emit` publishes, in this order, on the control thread (it owns the publisher):
+  ``pilot.command`` at once when the mux sends (ARMED only: nothing in DISARMED / FAILSAFE /
+  ESTOP, so the vehicle's own failsafe acts when input is lost), ``pilot.event`` for every mux
+  event and device notice (opened / lost / read error), ``raw.pilot`` for every chunk of
+  js_event bytes read (for the recording), and ``status`` once a second and on every state
+  change (``text`` = the loud status line, e.g. ``!!! PILOT FAILSAFE: JOYSTICK LOST ...``).
+- Latency budget of one command: input age at the tick < ``stale_ms`` (watchdog) + tick
+  (~0.1 ms) + bus (< 1 ms) + link write; the link drops a command older than its
+  ``--max-command-age-ms``.
+- Waits (XPUB ready handshake) until ``N`` subscribers hold ``pilot.command`` (the link, and the
+  recorder when recording) before opening the device, so the first command is not lost.
+- SIGINT/SIGTERM stop it cleanly (exit 0): the loop ends within one tick, the device closes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+
+import numpy as np
+import zmq
+
+from groundstation.acquisition.session import (
+    Session,
+    add_session_arguments,
+    publish_log,
+    session_from_args,
+)
+from groundstation.bus.errors import BusTimeoutError
+from groundstation.bus.pubsub import Publisher
+from groundstation.errors import ConfigError
+from groundstation.pilot.calibration import load_calibrations
+from groundstation.pilot.commander import Commander, Tick
+from groundstation.pilot.jsdev import JoystickDevice
+from groundstation.pilot.loop import LoopStats, run_pilot_loop
+from groundstation.pilot.settings import PilotSettings
+
+TOPICS = ("pilot.command", "pilot.event", "raw.pilot", "status", "log")
+_STATUS_NS = 1_000_000_000
+
+
+class PilotProcess:
+    """The pilot process shell (see the module docstring).
+
+    Parameters
+    ----------
+    session : Session
+        Bus endpoints of the session (this process binds ``name``).
+    device : str
+        Joystick path (``/dev/input/jsN``) or a FIFO.
+    settings : PilotSettings
+        Rate, shaping, mux and watchdog settings.
+    calibrations : dict, optional
+        Device calibrations by name (default: read from ``settings.calibration_path``).
+    name : str
+        Process name (its endpoint in the session).
+    wait_subscribers : int
+        Subscribers of ``pilot.command`` to wait for before opening the device (0: none).
+    wait_timeout_s : float
+        Longest wait for them (then start anyway, with a warning on ``log``).
+    """
+
+    def __init__(
+        self,
+        session: Session,
+        device: str,
+        settings: PilotSettings,
+        *,
+        calibrations: dict | None = None,
+        name: str = "pilot",
+        wait_subscribers: int = 1,
+        wait_timeout_s: float = 20.0,
+        context: zmq.Context | None = None,
+    ) -> None:
+        self.name, self.device_path, self.settings = name, device, settings
+        self.wait_subscribers, self.wait_timeout_s = wait_subscribers, wait_timeout_s
+        if calibrations is None:
+            calibrations = load_calibrations(settings.calibration_path)
+        self.commander = Commander(settings, calibrations)
+        self.ctx = context or zmq.Context()
+        self.pub = Publisher(topics=TOPICS, context=self.ctx, **session.publisher_kwargs(name))
+        self.device = JoystickDevice(
+            device,
+            name=settings.device_name,
+            alive_period_ms=settings.alive_period_ms,
+            reconnect_min_ms=settings.reconnect_min_ms,
+            reconnect_max_ms=settings.reconnect_max_ms,
+        )
+        self.commands = 0
+        self.events = 0
+        self.raw_chunks = 0
+        self.loop_stats = LoopStats()
+        self._last: Tick | None = None
+        self._next_status = 0
+        self._status_count = 0
+        self._status_ns: int | None = None
+
+    # -- the per-tick sink (control thread) ------------------------------------------------------
+    def emit(self, tick: Tick) -> None:
+        """Publish one tick: command first (latency), then events, raw bytes and status."""
+        cmd = tick.command
+        if cmd is not None:
+            self.pub.publish(
+                "pilot.command", cmd.to_payload(), source_ns=cmd.t_ns, recv_ns=cmd.t_ns
+            )
+            self.commands += 1
+        for ev in tick.events:
+            self.pub.publish("pilot.event", ev.to_payload(), source_ns=ev.t_ns, recv_ns=ev.t_ns)
+            self.events += 1
+        for notice in self.device.drain_notices():
+            self.pub.publish(
+                "pilot.event",
+                {"event": f"device_{notice.kind}", "text": notice.text},
+                source_ns=notice.t_ns,
+                recv_ns=notice.t_ns,
+            )
+            self.events += 1
+        for t_ns, data in self.device.drain_raw():
+            self.pub.publish(
+                "raw.pilot",
+                {"device": self.device_path},
+                {"data": np.frombuffer(data, np.uint8)},
+                source_ns=t_ns,
+                recv_ns=t_ns,
+            )
+            self.raw_chunks += 1
+        changed = self._last is None or (tick.state, tick.reason) != (
+            self._last.state,
+            self._last.reason,
+        )
+        self._last = tick
+        if changed or tick.t_ns >= self._next_status:
+            self._status(tick)
+            self._next_status = tick.t_ns + _STATUS_NS
+
+    def _status(self, tick: Tick | None, state: str | None = None) -> None:
+        now = time.monotonic_ns() if tick is None else tick.t_ns
+        dt = None if self._status_ns is None else (now - self._status_ns) / 1e9
+        rate = (self.commands - self._status_count) / dt if dt else 0.0
+        self._status_count, self._status_ns = self.commands, now
+        d = self.device.stats
+        health = None if tick is None else tick.health
+        self.pub.publish(
+            "status",
+            {
+                "process": self.name,
+                "state": state or (tick.state if tick is not None else "starting"),
+                "topics": {
+                    "pilot.command": {"count": self.commands, "rate_hz": round(rate, 2)},
+                    "pilot.event": {"count": self.events},
+                    "raw.pilot": {"count": self.raw_chunks},
+                    "device": {
+                        **dataclasses.asdict(d),
+                        "path": self.device_path,
+                        "age_ms": None
+                        if health is None or health.age_ns is None
+                        else round(health.age_ns / 1e6, 1),
+                    },
+                    "loop": {
+                        "rate_hz": self.settings.rate_hz,
+                        "ticks": self.loop_stats.ticks,
+                        "missed": self.loop_stats.missed,
+                    },
+                },
+                "text": tick.status if tick is not None else f"pilot {state or 'starting'}",
+            },
+        )
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def run(self, stop: threading.Event, max_ticks: int | None = None) -> int:
+        """Tick until ``stop`` is set (or ``max_ticks``); returns the exit code (0)."""
+        try:
+            if self.wait_subscribers > 0:
+                try:
+                    self.pub.wait_for_subscribers(
+                        self.wait_subscribers, ("pilot.command",), self.wait_timeout_s
+                    )
+                except BusTimeoutError as exc:
+                    publish_log(self.pub, self.name, "warning", f"starting anyway: {exc.message}")
+            self._status(None, "starting")
+            if self.commander.calibration_for(self.settings.device_name) is None and (
+                self.settings.device_name
+            ):
+                publish_log(
+                    self.pub, self.name, "warning",
+                    f"no calibration for {self.settings.device_name!r} in "
+                    f"{self.settings.calibration_path}: the joystick will not fly",
+                    "run 'groundstation joystick calibrate'",
+                )  # fmt: skip
+            self.device.start()
+            self.loop_stats = run_pilot_loop(
+                self.device.snapshot, self.commander, self.emit, stop, max_ticks=max_ticks
+            )
+            return 0
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        self.device.stop()
+        try:
+            self._status(self._last, "stopped")
+        except Exception:  # noqa: BLE001 - best effort at shutdown
+            pass
+        self.pub.close()
+        self.ctx.term()
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m groundstation.pilot.process")
+    add_session_arguments(p)
+    p.add_argument("--device", required=True, help="joystick: /dev/input/js0 (or a FIFO)")
+    p.add_argument("--name", default="pilot", help="process name (its endpoint in the session)")
+    p.add_argument("--rate", type=float, default=None, help="MANUAL_CONTROL rate, Hz (<= 50)")
+    p.add_argument("--calibration", default=None, help="calibration TOML (pilot.calibration_path)")
+    p.add_argument("--wait-subscribers", type=int, default=1, help="pilot.command subscribers")
+    p.add_argument("--max-ticks", type=int, default=None, help="stop after this many ticks")
+    return p
+
+
+def settings_from_args(args: argparse.Namespace) -> PilotSettings:
+    """``Config.pilot`` from ``--config`` / ``--set``, then ``--rate`` / ``--calibration``."""
+    from groundstation.config import load_config
+
+    settings = load_config(args.config, args.set).pilot
+    changes: dict[str, object] = {}
+    if args.rate is not None:
+        changes["rate_hz"] = args.rate
+    if args.calibration is not None:
+        changes["calibration_path"] = args.calibration
+    return dataclasses.replace(settings, **changes) if changes else settings
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point (see the module docstring)."""
+    args = _parser().parse_args(argv)
+    try:
+        settings = settings_from_args(args)
+    except ConfigError as exc:
+        print(f"error: {exc.message}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda _s, _f: stop.set())
+    proc = PilotProcess(
+        session_from_args(args),
+        os.path.expanduser(args.device),
+        settings,
+        name=args.name,
+        wait_subscribers=args.wait_subscribers,
+    )
+    return proc.run(stop, args.max_ticks)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,157 @@
+"""Files of a pipeline run: ``mesh.ply``, ``observations.csv``, ``report.json``, ``snapshots/``.
+
+- ``mesh.ply``: the last good mesh, vertex colours = predictive std (``mapping.surface``).
+- ``observations.csv``: ``id, x, y, z, label, t_s, event_id, u, flag`` per observation; ``t_s`` is
+  the observation's data (source) time in seconds from the log start; ``u``/``flag`` from the
+  final fit (empty when the observation was not in a fit).
+- ``report.json``: :func:`build_report` (NaN written as ``null``).
+- ``snapshots/snapshot_<fit>.png``: the meshes of the last few fits with the observations
+  coloured by flag state (``viewer.headless.render_snapshot``, matplotlib projections).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import statistics
+from pathlib import Path
+
+import numpy as np
+
+from groundstation.pipeline.offline import PipelineResult
+from groundstation.pipeline.scoring import DetectedEvent, score
+
+REPORT_KEYS = (
+    "duration_s", "contacts", "contacts_per_min", "observations", "refits", "refit_s_median",
+)  # fmt: skip
+
+
+def detected_events(result: PipelineResult) -> list[DetectedEvent]:
+    """Begin messages of the run with the final fit's flag."""
+    flagged = set(result.final.flagged_events) if result.final is not None else set()
+    return [
+        DetectedEvent(int(e.payload["id"]), int(e.header.source_ns), e.payload["id"] in flagged)
+        for e in result.events
+        if e.payload["state"] == "begin"
+    ]
+
+
+def build_report(result: PipelineResult, *, scored: bool = True) -> dict:
+    """Every report key of ``groundstation replay`` (truth metrics when the log has truth)."""
+    fits = result.fits
+    minutes = result.duration_s / 60.0
+    rep: dict = {
+        "log": result.log_path,
+        "mode": result.mode,
+        "duration_s": result.duration_s,
+        "contacts": result.contacts,
+        "contacts_per_min": result.contacts / minutes if minutes > 0 else math.nan,
+        "observations": len(result.observations),
+        "refits": len(fits),
+        "refit_s_median": statistics.median(f.timings.get("total_s", math.nan) for f in fits)
+        if fits
+        else math.nan,
+        "refits_unreliable": sum(not f.reliable for f in fits),
+        "flagged_events": list(result.final.flagged_events) if result.final else [],
+        "final_fit": None
+        if result.final is None
+        else {
+            "fit_index": result.final.fit_index,
+            "reliable": result.final.reliable,
+            "reasons": list(result.final.reasons),
+            "mesh_fit_index": result.final.mesh_fit_index,
+            "hyperparameters": result.final.hyperparameters,
+        },
+        "wall_s": result.wall_s,
+        "gaps": result.gaps,
+        "stats": result.stats,
+    }
+    if scored and result.truth:
+        mesh = result.final.mesh if result.final is not None else None
+        rep.update(score(mesh, detected_events(result), result.truth))
+    return rep
+
+
+def _clean(obj):
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return _clean(obj.item())
+    return obj
+
+
+def write_report(report: dict, path: str | Path) -> Path:
+    """``report.json`` with NaN/inf as null."""
+    path = Path(path)
+    path.write_text(json.dumps(_clean(report), indent=2, sort_keys=True) + "\n")
+    return path
+
+
+def write_observations_csv(result: PipelineResult, path: str | Path) -> Path:
+    """``observations.csv`` (columns in the module docstring)."""
+    fit = result.final
+    lookup: dict[int, tuple[float, int]] = {}
+    if fit is not None:
+        for i, u, f in zip(fit.ids.tolist(), fit.u.tolist(), fit.flags.tolist(), strict=True):
+            lookup[i] = (u, f)
+    path = Path(path)
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["id", "x", "y", "z", "label", "t_s", "event_id", "u", "flag"])
+        for o in sorted(result.observations, key=lambda o: o.id):
+            u, f = lookup.get(o.id, (None, None))
+            x, y, z = (float(v) for v in o.position)
+            w.writerow([
+                o.id, f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", int(o.label),
+                f"{(o.t_ns - result.start_ns) / 1e9:.4f}", o.event_id,
+                "" if u is None else f"{u:.6g}", "" if f is None else int(f),
+            ])  # fmt: skip
+    return path
+
+
+def write_snapshots(result: PipelineResult, folder: str | Path, last: int = 3) -> list[Path]:
+    """PNG snapshots of the last ``last`` fits that still hold a mesh."""
+    from groundstation.viewer.headless import render_snapshot
+    from groundstation.viewer.scene import ViewModel
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    out: list[Path] = []
+    with_mesh = [f for f in result.fits if f.mesh is not None and not f.mesh.is_empty]
+    for fit in with_mesh[-last:] if last > 0 else []:
+        vm = ViewModel()
+        m = fit.mesh
+        std = m.std if m.std is not None else np.zeros(len(m.vertices))
+        vm.ingest_mesh(m.vertices, m.faces, std, fit.mesh_fit_index)
+        for o in result.observations:
+            if o.t_ns <= fit.data_ns:
+                vm.ingest_observation(o.id, int(o.label), o.position)
+        vm.ingest_fit(fit.ids, fit.u, fit.flags, fit.fit_index)
+        path = folder / f"snapshot_{fit.fit_index:04d}.png"
+        render_snapshot(vm.scene(), path, backend="matplotlib")
+        out.append(path)
+    return out
+
+
+def write_outputs(result: PipelineResult, out_dir: str | Path, *, snapshots: int = 3) -> dict:
+    """Write every output file into ``out_dir`` (created); returns the report."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    report = build_report(result)
+    final = result.final
+    if final is not None and final.mesh is not None and not final.mesh.is_empty:
+        from groundstation.mapping.surface import write_ply
+
+        write_ply(final.mesh, out / "mesh.ply")
+        report["mesh"] = "mesh.ply"
+    else:
+        report["mesh"] = None
+    write_observations_csv(result, out / "observations.csv")
+    report["snapshots"] = [p.name for p in write_snapshots(result, out / "snapshots", snapshots)]
+    write_report(report, out / "report.json")
+    return report

@@ -1,0 +1,176 @@
+"""Score a pipeline run against the recording's ground truth (pure; truth = ``sitl-truth/1``).
+
+Metrics (all distances in metres)
+---------------------------------
+``chamfer_m``
+    Symmetric Chamfer distance (``mapping.metrics.chamfer_distance``) between the mesh and the
+    true surface, both restricted to the part of the structure the flight *touched*: points
+    within ``touched_radius_m`` (0.5 m, about two length scales) of a true touch contact point
+    (kinds ``touch`` and ``slow_touch``). A touch-built map can only know the surface near its
+    touches; elsewhere it is the GP prior, which no flight could have corrected.
+``chamfer_full_m``
+    The same, unrestricted: the whole mesh against the whole true surface inside the region.
+``shape_error_m``
+    The paper's band metric: mean distance to the true surface of the points where the
+    estimate puts its surface. The mesh vertices are the points with mu = 0 on the grid (the
+    band |mu| < 0.01 in the limit of a fine grid), so it is their mean distance.
+``fp_precision``, ``fp_recall``
+    Detected contact events are matched to truth events by time: a detected event whose start
+    lies in ``[start - 0.1 s, end + 0.3 s]`` of a truth event matches it (nearest start wins).
+    Events matched to a truth ``gust`` are the false contacts. Precision = flagged false /
+    flagged; recall = flagged false / detected false. NaN (``null`` in JSON) when undefined.
+``detection_recall``
+    Truth ``touch`` events matched by at least one detected event / truth touches.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+
+from groundstation.mapping.metrics import chamfer_distance, sample_mesh_surface
+from groundstation.mapping.surface import SurfaceMesh
+
+MATCH_BEFORE_S = 0.1
+MATCH_AFTER_S = 0.3
+
+
+@dataclasses.dataclass(frozen=True)
+class DetectedEvent:
+    """A detected contact event: id, start time on the log axis (ns), flagged or not."""
+
+    id: int
+    t_start_ns: int
+    flagged: bool = False
+
+
+def match_events(events: Sequence[DetectedEvent], truth: dict) -> dict[int, tuple[int, str] | None]:
+    """Detected event id -> (truth contact index, kind), or None when nothing matches."""
+    offset = int(truth.get("clock", {}).get("station_offset_ns", 0))
+    contacts = truth.get("contacts", [])
+    out: dict[int, tuple[int, str] | None] = {}
+    for ev in events:
+        t = (ev.t_start_ns - offset) / 1e9
+        best: tuple[float, int] | None = None
+        for k, c in enumerate(contacts):
+            if c["start"] - MATCH_BEFORE_S <= t <= c["end"] + MATCH_AFTER_S:
+                d = abs(t - c["start"])
+                if best is None or d < best[0]:
+                    best = (d, k)
+        out[ev.id] = None if best is None else (best[1], contacts[best[1]]["kind"])
+    return out
+
+
+def false_positive_scores(events: Sequence[DetectedEvent], truth: dict) -> dict[str, float]:
+    """``fp_precision``, ``fp_recall``, ``detection_recall`` and the counts behind them."""
+    m = match_events(events, truth)
+    false = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "gust"}
+    flagged = {e.id for e in events if e.flagged}
+    touches = [k for k, c in enumerate(truth.get("contacts", [])) if c["kind"] == "touch"]
+    found = {v[0] for v in m.values() if v is not None and v[1] == "touch"}
+    tp = len(false & flagged)
+    return {
+        "fp_precision": tp / len(flagged) if flagged else math.nan,
+        "fp_recall": tp / len(false) if false else math.nan,
+        "detection_recall": len(found & set(touches)) / len(touches) if touches else math.nan,
+        "events_false": len(false),
+        "events_flagged": len(flagged),
+        "events_flagged_false": tp,
+        "events_unmatched": sum(v is None for v in m.values()),
+        "truth_gusts": sum(c["kind"] == "gust" for c in truth.get("contacts", [])),
+        "truth_touches": len(touches),
+    }
+
+
+def _scene(truth: dict):
+    from firmware_bridge.sitl.scene import parse_scene
+
+    return parse_scene(truth["scene"], truth["scene"].get("name", "scene"))
+
+
+def touched_points(truth: dict) -> np.ndarray:
+    """(k, 3) true contact points of touches (kinds touch/slow_touch)."""
+    pts = [
+        c["point"]
+        for c in truth.get("contacts", [])
+        if c["kind"] in ("touch", "slow_touch") and c.get("point") is not None
+    ]
+    return np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+
+
+def _near(points: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
+    if points.size == 0 or centres.size == 0:
+        return np.zeros(len(points), dtype=bool)
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(centres).query(points)
+    return d <= radius
+
+
+def surface_scores(
+    mesh: SurfaceMesh | None,
+    truth: dict,
+    *,
+    touched_radius_m: float = 0.5,
+    spacing_m: float = 0.02,
+    seed: int = 0,
+) -> dict[str, float]:
+    """``chamfer_m``, ``chamfer_full_m`` and ``shape_error_m`` (module docstring); NaN when
+    there is no mesh."""
+    nan = {"chamfer_m": math.nan, "chamfer_full_m": math.nan, "shape_error_m": math.nan}
+    if mesh is None or mesh.is_empty:
+        return nan
+    scene = _scene(truth)
+    rng = np.random.default_rng(seed)
+    area = _true_area(scene)
+    true_pts = scene.sample_surface(rng, int(min(50_000, max(2000, area / spacing_m**2))))
+    lo, hi = np.asarray(scene.region_min), np.asarray(scene.region_max)
+    true_pts = true_pts[np.all((true_pts >= lo) & (true_pts <= hi), axis=1)]
+    v, f = mesh.vertices, mesh.faces
+    mesh_area = 0.5 * np.linalg.norm(
+        np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1
+    )
+    n_mesh = int(min(50_000, max(2000, mesh_area.sum() / spacing_m**2)))
+    mesh_pts = sample_mesh_surface(v, f, n_mesh, seed=seed)
+    touched = touched_points(truth)
+    a = mesh_pts[_near(mesh_pts, touched, touched_radius_m)]
+    b = true_pts[_near(true_pts, touched, touched_radius_m)]
+    verts = mesh.vertices
+    if len(verts) > 20000:
+        verts = verts[rng.choice(len(verts), 20000, replace=False)]
+    return {
+        "chamfer_m": chamfer_distance(a, b),
+        "chamfer_full_m": chamfer_distance(mesh_pts, true_pts),
+        "shape_error_m": float(np.mean(np.abs(scene.signed_distance(verts)))),
+    }
+
+
+def _true_area(scene) -> float:
+    total = 0.0
+    for o in scene.objects:
+        if hasattr(o, "min"):  # box
+            dx, dy, dz = (np.asarray(o.max) - np.asarray(o.min)).tolist()
+            total += 2 * (dx * dy + dx * dz + dy * dz)
+        elif hasattr(o, "height"):  # cylinder
+            total += 2 * math.pi * o.radius * o.height + 2 * math.pi * o.radius**2
+        else:
+            total += 4 * math.pi * o.radius**2
+    return total
+
+
+def score(
+    mesh: SurfaceMesh | None,
+    events: Iterable[DetectedEvent],
+    truth: dict | None,
+    *,
+    touched_radius_m: float = 0.5,
+) -> dict[str, float]:
+    """Every truth-based metric, or {} when the log has no truth."""
+    if not truth or not truth.get("scene"):
+        return {}
+    out = surface_scores(mesh, truth, touched_radius_m=touched_radius_m)
+    out.update(false_positive_scores(list(events), truth))
+    return out

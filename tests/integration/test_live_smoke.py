@@ -1,0 +1,174 @@
+"""``groundstation live`` against ``groundstation sitl`` (pseudo-terminal MAVLink + loopback UDP
+NatNet), SIGINT, then the recording: it opens without recovery, holds what the monitor saw with
+zero gaps, and (when the detector and mapper are installed) observations.
+
+The SITL flies its scripted survey of the wall at real time; frames are counted, never timed.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import shutil
+import signal
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from groundstation.acquisition.reader import open_recording
+from groundstation.live_cli import DETECTOR_MODULE, MAPPER_MODULE, _available
+from tests.integration.test_pilot_sitl import free_udp_port, start, stop, wait_for
+
+LIVE_S = 15  # status lines (~seconds) to wait for before SIGINT
+
+pytestmark = pytest.mark.timeout(240)
+
+
+@pytest.fixture(autouse=True)
+def _remove_session_dirs():
+    before = set(glob.glob("/tmp/gs-*"))
+    yield
+    for d in set(glob.glob("/tmp/gs-*")) - before:
+        shutil.rmtree(d, ignore_errors=True)
+
+
+def sitl_device(out: Path, proc: subprocess.Popen, timeout: float = 30) -> str:
+    """The pty the SITL printed (``SITL MAVLink on /dev/pts/N``)."""
+
+    def find() -> str | None:
+        assert proc.poll() is None, "the SITL exited early"
+        for line in out.read_text().splitlines():
+            if line.startswith("SITL MAVLink on "):
+                return line.rsplit(" ", 1)[1]
+        return None
+
+    return wait_for(find, timeout, "the SITL's pty", poll=0.1)
+
+
+def status_lines(path: Path) -> list[str]:
+    return [ln for ln in path.read_text().splitlines() if ln.lstrip("!").lstrip().startswith("t=")]
+
+
+def run_live_against_sitl(
+    tmp_path: Path,
+    n_lines: int,
+    sitl_args: list[str],
+    live_args: list[str],
+    during=None,
+) -> tuple[int, dict, list[str], str]:
+    """Start the SITL (pty + UDP mocap) and ``live``; wait for ``n_lines`` status lines (calling
+    ``during()`` once started), SIGINT ``live``; returns (exit code, summary, lines, stderr)."""
+    mport = free_udp_port()
+    sitl = start(
+        ["sitl", "--link", "pty", "--mocap", f"udp://127.0.0.1:{mport}", *sitl_args],
+        tmp_path / "sitl.out", tmp_path / "sitl.err",
+    )  # fmt: skip
+    live = None
+    try:
+        dev = sitl_device(tmp_path / "sitl.out", sitl)
+        live = start(
+            ["live", "--link", f"serial://{dev}?baud=921600",
+             "--mocap", f"natnet://127.0.0.1:{mport}", "--summary", str(tmp_path / "summary.json"),
+             *live_args],
+            tmp_path / "live.out", tmp_path / "live.err",
+        )  # fmt: skip
+        if during is not None:
+            during()
+        wait_for(
+            lambda: live.poll() is not None or len(status_lines(tmp_path / "live.out")) >= n_lines,
+            n_lines * 3 + 60, f"{n_lines} status lines", poll=0.5,
+        )  # fmt: skip
+        assert live.poll() is None, (tmp_path / "live.err").read_text()[-3000:]
+    finally:
+        rc = stop(live) if live is not None else -1
+        stop(sitl, signal.SIGTERM)
+    err = (tmp_path / "live.err").read_text()
+    summary = json.loads((tmp_path / "summary.json").read_text()) if rc >= 0 else {}
+    return rc, summary, status_lines(tmp_path / "live.out"), err
+
+
+def test_live_session_against_the_sitl_records_everything_with_zero_gaps(tmp_path):
+    rec_path = tmp_path / "live.mcap"
+    rc, summary, lines, err = run_live_against_sitl(
+        tmp_path,
+        LIVE_S,
+        ["--scene", "wall", "--pilot", "script:survey", "--duration", "120"],
+        ["--record", str(rec_path), "--no-viewer"],
+    )
+    assert rc == 0, err[-3000:]
+    assert len(lines) >= LIVE_S
+    steady = lines[3:LIVE_S]  # after start-up: every line shows ~200 Hz streams and no gap
+    assert all("gaps 0/0 rec" in ln for ln in steady), steady
+    imu = [float(ln.split("imu", 1)[1].split("Hz")[0]) for ln in steady]
+    assert sorted(imu)[len(imu) // 2] > 150, imu
+
+    with open_recording(rec_path) as rec:  # no recovery needed: closed cleanly
+        assert not rec.truncated
+        counts = rec.summary.topic_counts
+    assert summary["recording"]["complete"] is True
+    assert summary["gaps_monitor"] == 0 and summary["gaps_recorder"] == 0
+    for topic in ("samples.imu", "samples.attitude", "samples.pose"):
+        assert counts[topic] > 200 * (LIVE_S - 8), (topic, counts[topic])
+        assert counts[topic] == summary["counts"][topic], topic  # the recorder missed nothing
+    assert counts["raw.mavlink"] > 0 and counts["raw.natnet"] == counts["samples.pose"]
+    if _available(DETECTOR_MODULE) and _available(MAPPER_MODULE):
+        assert counts.get("observations", 0) > 0
+        assert counts.get("observations", 0) == summary["observations"]
+    print(f"\n{lines[-1]}\nrecorded: {counts}")
+
+
+def _pid(err_path: Path, name: str, nth: int = 0) -> int | None:
+    """The pid of the ``nth`` start of worker ``name`` (``started NAME (pid N)`` on stderr)."""
+    pids = [
+        int(ln.rsplit("pid ", 1)[1].rstrip(")"))
+        for ln in err_path.read_text().splitlines()
+        if ln.startswith(f"started {name} (pid ")
+    ]
+    return pids[nth] if len(pids) > nth else None
+
+
+@pytest.mark.skipif(
+    not (_available(DETECTOR_MODULE) and _available(MAPPER_MODULE)), reason="no mapping stack"
+)
+def test_a_killed_mapper_is_restarted_and_loses_no_observation(tmp_path):
+    """SIGKILL the mapper mid-session: the supervisor restarts it, it restores from the
+    recording being written, and its last fit holds every observation recorded up to it."""
+    import os
+
+    from groundstation.bus.envelope import from_bytes
+
+    rec_path = tmp_path / "live.mcap"
+    err = tmp_path / "live.err"
+    killed: list[int] = []
+
+    def kill_mapper_once_observations_flow():
+        wait_for(lambda: _pid(err, "mapper") is not None, 60, "the mapper to start", poll=0.2)
+        wait_for(lambda: len(status_lines(tmp_path / "live.out")) >= 20, 120, "20 s of session",
+                 poll=0.5)  # fmt: skip
+        pid = _pid(err, "mapper")
+        os.kill(pid, signal.SIGKILL)
+        killed.append(pid)
+        wait_for(lambda: _pid(err, "mapper", 1) is not None, 60, "the mapper restart", poll=0.2)
+
+    rc, summary, lines, stderr = run_live_against_sitl(
+        tmp_path,
+        45,
+        ["--scene", "wall", "--pilot", "script:survey", "--duration", "150"],
+        ["--record", str(rec_path), "--no-viewer"],
+        during=kill_mapper_once_observations_flow,
+    )
+    assert killed, "the mapper was never killed"
+    assert "mapper exited -9" in stderr and "mapper restarting" in stderr
+    with open_recording(rec_path) as rec:
+        obs = [from_bytes(m.data) for m in rec.messages("observations")]
+        fits = [from_bytes(m.data) for m in rec.messages("mapper.fit")]
+        logs = [from_bytes(m.data).payload.get("message", "") for m in rec.messages("log")]
+    assert any(m.startswith("restored ") for m in logs), logs[-20:]
+    last = fits[-1]
+    held = set(last.arrays["ids"].tolist())
+    due = {e.payload["id"] for e in obs if e.header.source_ns <= last.payload["data_ns"]}
+    assert len(due) > 10
+    assert due <= held, f"{len(due - held)} recorded observations missing from the last fit"
+    # the restarted mapper counted fits from 0 again: its fits follow the kill
+    assert [f.payload["fit_index"] for f in fits].count(0) == 2
