@@ -40,6 +40,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
         "groundstation.replay_cli",
         "run the mapping pipeline on a recording: mesh, per-observation table, report",
     ),
+    ("bench", "sessions"): (
+        "groundstation.bench.sessions",
+        "the whole pipeline on many SITL sessions, per setting variant, scored against truth",
+    ),
     ("config", "show"): ("groundstation.config_cli", "print the effective configuration as TOML"),
     ("record",): (
         "groundstation.acquisition.record_cli",
