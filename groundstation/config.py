@@ -15,9 +15,9 @@ from pathlib import Path
 from typing import Any
 
 from groundstation.acquisition.session import AcquisitionSettings
-from groundstation.contact.settings import ContactSettings
+from groundstation.contact.settings import AlignmentSettings, ContactSettings
 from groundstation.errors import ConfigError
-from groundstation.mapping.settings import MappingSettings, SurfaceSettings
+from groundstation.mapping.settings import MapperSettings, MappingSettings, SurfaceSettings
 from groundstation.pilot.settings import PilotSettings
 
 
@@ -27,7 +27,9 @@ class Config:
 
     acquisition: AcquisitionSettings = AcquisitionSettings()
     contact: ContactSettings = ContactSettings()
+    alignment: AlignmentSettings = AlignmentSettings()
     mapping: MappingSettings = MappingSettings()
+    mapper: MapperSettings = MapperSettings()
     surface: SurfaceSettings = SurfaceSettings()
     pilot: PilotSettings = PilotSettings()
 

@@ -86,36 +86,15 @@ def _available(module: str) -> bool:
         return False
 
 
-def split_overrides(overrides: list[str]) -> tuple[list[str], list[str]]:
-    """(station, pipeline-only) ``--set`` items: sections of ``Config`` go to every worker, the
-    others (``mapper.*``, ``alignment.*`` until ``Config`` has them) only to the detector and
-    mapper, whose config loader knows them."""
-    import dataclasses
-
-    from groundstation.config import Config
-
-    native = {f.name for f in dataclasses.fields(Config)}
-    station = [s for s in overrides if s.partition("=")[0].strip().split(".", 1)[0] in native]
-    return station, [s for s in overrides if s not in station]
-
-
 def _check_config(args: argparse.Namespace) -> None:
     """Load the configuration once here, so a bad setting fails before any worker starts."""
-    _, pipeline = split_overrides(args.set)
-    if pipeline and not args.no_mapping and _available("groundstation.pipeline"):
-        from groundstation.pipeline import load_pipeline_config
-
-        load_pipeline_config(args.config, args.set)
-    else:
-        load_settings(args.config, args.set)
+    load_settings(args.config, args.set)
 
 
 def plan(args: argparse.Namespace, session_id: str) -> tuple[Session, list[WorkerSpec]]:
     """The session and the worker specs of a live run, in start order (no side effects)."""
     cfg_file = ["--config", args.config] if args.config else []
-    station, pipeline = split_overrides(args.set)
-    cfg = (*cfg_file, *[a for s in station for a in ("--set", s)])
-    cfg_pipeline = (*cfg, *[a for s in pipeline for a in ("--set", s)])
+    cfg = (*cfg_file, *[a for s in args.set for a in ("--set", s)])
     mapping = not args.no_mapping and _available(DETECTOR_MODULE) and _available(MAPPER_MODULE)
     names = ["recorder"] if args.record else []
     names += ["link"] + (["mocap"] if args.mocap else []) + (["pilot"] if args.joystick else [])
@@ -167,12 +146,12 @@ def plan(args: argparse.Namespace, session_id: str) -> tuple[Session, list[Worke
         specs.append(
             WorkerSpec(
                 "mapper",
-                python_module(MAPPER_MODULE, *session.as_args(), *mapper_args, *cfg_pipeline),
+                python_module(MAPPER_MODULE, *session.as_args(), *mapper_args, *cfg),
                 env=(("OPENBLAS_NUM_THREADS", "1"), ("OMP_NUM_THREADS", "1")),
             )
         )
         # --first-id auto: a detector restarted by the supervisor numbers on from the clock
-        detector = ("--wait-subscribers", str(1 + rec), "--first-id", "auto", *cfg_pipeline)
+        detector = ("--wait-subscribers", str(1 + rec), "--first-id", "auto", *cfg)
         specs.append(
             WorkerSpec("detector", python_module(DETECTOR_MODULE, *session.as_args(), *detector))
         )

@@ -5,8 +5,8 @@ pipeline (``pipeline.offline``: fast, deterministic); ``--processes`` forces the
 one (replay source, detector and mapper processes on a session bus; also used for any finite
 ``--speed X``). Both write the same outputs to ``--out`` (``pipeline.outputs``: mesh.ply,
 observations.csv, report.json, snapshots/) and print a progress line on stderr and the report
-summary on stdout. Settings: ``--config FILE`` and ``--set section.key=value`` (sections of
-``groundstation config show`` plus ``mapper.*`` and ``alignment.*``).
+summary on stdout. Settings: ``--config FILE`` and ``--set section.key=value`` (every section
+of ``groundstation config show``).
 """
 
 from __future__ import annotations

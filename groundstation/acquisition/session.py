@@ -19,9 +19,8 @@ module: they only add process names.
 
 Settings
 --------
-:class:`AcquisitionSettings` is a frozen dataclass loaded through ``groundstation.config``'s
-coercion from a ``[acquisition]`` TOML table and ``--set acquisition.KEY=VALUE`` overrides
-(:func:`load_settings`), until ``Config`` gains an ``acquisition`` section.
+:class:`AcquisitionSettings` is the ``[acquisition]`` section of ``groundstation.config.Config``;
+:func:`load_settings` loads (and so validates) the whole configuration and returns it.
 """
 
 from __future__ import annotations

@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
+from groundstation.errors import ConfigError
+
 G = 9.80665  # standard gravity, m/s^2
 
 
@@ -85,3 +87,38 @@ class ContactSettings:
         for name in ("refractory_s", "quiet_s", "external_spacing_m"):
             if getattr(self, name) < 0:
                 raise ValueError(f"contact.{name} must be >= 0, got {getattr(self, name)!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class AlignmentSettings:
+    """How the detector stage pairs IMU samples with attitude and mocap poses.
+
+    Attributes
+    ----------
+    max_wait_s : float
+        Bounded wait of rule 2 (module docstring), seconds of IMU data time.
+    pose_max_gap_s : float
+        Largest spacing of two bracketing mocap poses interpolated across, seconds (200 Hz mocap
+        with a few dropped frames; 0.15 s also covers 10 Hz RTK positions of imported flights).
+    attitude_max_gap_s : float
+        Largest spacing of two bracketing attitude samples, seconds.
+    body_id : int
+        Mocap rigid body to track; -1 = the first body seen.
+    """
+
+    max_wait_s: float = 0.25
+    pose_max_gap_s: float = 0.15
+    attitude_max_gap_s: float = 0.1
+    body_id: int = -1
+
+    def __post_init__(self) -> None:
+        for name in ("max_wait_s", "pose_max_gap_s", "attitude_max_gap_s"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"alignment.{name} must be > 0 s, got {getattr(self, name)!r}")
+        for name in ("pose_max_gap_s", "attitude_max_gap_s"):
+            if not getattr(self, name) < self.max_wait_s:
+                raise ConfigError(
+                    f"alignment.{name} = {getattr(self, name)!r} must be below "
+                    f"alignment.max_wait_s = {self.max_wait_s!r}",
+                    hint="otherwise the pairing of a sample could depend on message arrival order",
+                )

@@ -56,63 +56,12 @@ from collections.abc import Callable, Iterable
 import numpy as np
 
 from groundstation.contact.detector import Observation
-from groundstation.errors import ConfigError, GroundstationError
+from groundstation.errors import GroundstationError
 from groundstation.mapping.diagnostics import diagnose
-from groundstation.mapping.settings import MappingSettings, SurfaceSettings
+from groundstation.mapping.settings import MapperSettings, MappingSettings, SurfaceSettings
 from groundstation.mapping.surface import SurfaceMesh
 
 FLAG_FALSE_POSITIVE = 1  # mapper.fit flag bit 0
-
-
-@dataclasses.dataclass(frozen=True)
-class MapperSettings:
-    """Refit schedule, flag rule and failure handling of the mapper.
-
-    Attributes
-    ----------
-    refit_period_s : float
-        Refit after this much data time since the last fit's data (seconds).
-    refit_min_new : int
-        ... or after this many new observations, whichever comes first.
-    min_contacts : int
-        Contact observations needed before the first fit.
-    flag_u : float
-        Margin of the flag rule above the fit's noise floor, label units^2 (module docstring).
-    flag_event_fraction : float
-        Fraction of an event's contacts that must be suspect to flag the whole event.
-    flag_fraction_max : float
-        More suspect contacts than this fraction makes the fit unreliable (the model rejects
-        the data instead of fitting it). 0.9: a gusty session legitimately reaches 0.86.
-    expect_outliers : bool
-        ``diagnose``: treat the Gaussian plateau (alpha at its bound) as a failure. Off by
-        default: a session with no false contact legitimately sits there.
-    fallback : bool
-        Try the diagnosed fallback refit when a fit is unreliable.
-    with_mesh : bool
-        Extract the mesh on every refit (off: only ``u`` and flags).
-    """
-
-    refit_period_s: float = 2.0
-    refit_min_new: int = 30
-    min_contacts: int = 2
-    flag_u: float = 0.3
-    flag_event_fraction: float = 0.5
-    flag_fraction_max: float = 0.9
-    expect_outliers: bool = False
-    fallback: bool = True
-    with_mesh: bool = True
-
-    def __post_init__(self) -> None:
-        for name in ("refit_period_s", "flag_u"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"mapper.{name} must be > 0, got {getattr(self, name)!r}")
-        for name in ("refit_min_new", "min_contacts"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ConfigError(f"mapper.{name} must be an integer >= 1, got {v!r}")
-        for name in ("flag_event_fraction", "flag_fraction_max"):
-            if not 0 < getattr(self, name) <= 1:
-                raise ConfigError(f"mapper.{name} must be in (0, 1], got {getattr(self, name)!r}")
 
 
 @dataclasses.dataclass
