@@ -108,6 +108,8 @@ class StatusBoard:
         self.status: dict[str, dict[str, Any]] = {}
         self.gaps: dict[str, int] = {}
         self.contacts = 0
+        self.flagged: int | None = None  # contact events the last fit flags as false
+        self.fit_reliable = True
         self.observations = 0
         self.contact_observations = 0
         self.link_connected: bool | None = None
@@ -178,6 +180,9 @@ class StatusBoard:
 
     def _on_fit(self, env: Envelope, now_ns: int) -> None:
         k = int(env.payload.get("fit_index", -1))
+        self.fit_reliable = bool(env.payload.get("reliable", True))
+        if "flagged_events" in env.payload:
+            self.flagged = len(env.payload["flagged_events"])
         self._refit(env.payload, ("fit", k))
         ids = env.arrays.get("ids")
         new = []
@@ -275,10 +280,15 @@ class StatusBoard:
         parts.append(f"{word} {gaps}" + ("" if rec_gaps is None else f"/{rec_gaps} rec"))
         if rec_gaps is not None and self.recorder_latest_drops:
             parts.append(f"(rec skipped {self.recorder_latest_drops} superseded)")
-        parts.append(f"contacts {self.contacts}")
+        parts.append(
+            f"contacts {self.contacts}"
+            + ("" if self.flagged is None else f" ({self.flagged} flagged)")
+        )
         parts.append(f"obs {self.observations}")
         if self.refit_s:
             parts.append(f"refit {self.refit_s[-1]:.2f} s")
+        if not self.fit_reliable:
+            parts.append("FIT UNRELIABLE (last good mesh kept)")
         if self.mesh is not None:
             age = (now_ns - self.mesh.t_ns) / 1e9
             parts.append(f"mesh #{self.mesh.fit_index} age {age:.1f} s")
@@ -309,6 +319,7 @@ class StatusBoard:
             "recorder_latest_dropped": self.recorder_latest_drops,
             "gaps_by_topic": dict(sorted(self.gaps.items())),
             "contacts": self.contacts,
+            "contacts_flagged": self.flagged,
             "observations": self.observations,
             "contact_observations": self.contact_observations,
             "refit_s": _stats(self.refit_s),

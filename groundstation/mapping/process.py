@@ -179,6 +179,7 @@ class MapperProcess:
                 "lag_s": float(lag_s),
                 "fit_s": float(fit.timings.get("total_s", 0.0)),
                 "hyperparameters": fit.hyperparameters,
+                "flagged_events": [int(e) for e in fit.flagged_events],
             },
             {"ids": fit.ids.astype(np.int64), "u": fit.u.astype(np.float64), "flags": fit.flags},
             source_ns=fit.data_ns,

@@ -78,6 +78,20 @@ def test_contacts_observations_refit_and_mesh_age():
     assert b.summary()["contact_observations"] == 2
 
 
+def test_flagged_contacts_and_an_unreliable_fit_show_in_the_line():
+    b = StatusBoard(0)
+    b.ingest(env("contact.event", {"id": 1, "state": "begin", "peak_g": 1.5}), S)
+    assert "contacts 1  " in b.line(S) + "  "  # no fit yet: no flag count
+    fit = {"fit_index": 0, "reliable": True, "flagged_events": [1]}
+    b.ingest(env("mapper.fit", fit, {"ids": np.array([0], np.int64)}), 2 * S)
+    line = b.line(3 * S)
+    assert "contacts 1 (1 flagged)" in line and "UNRELIABLE" not in line
+    bad = {"fit_index": 1, "reliable": False, "flagged_events": [1]}
+    b.ingest(env("mapper.fit", bad, {"ids": np.array([0], np.int64)}), 4 * S)
+    assert "FIT UNRELIABLE (last good mesh kept)" in b.line(5 * S)
+    assert b.summary()["contacts_flagged"] == 1
+
+
 def test_refit_seconds_finds_nested_seconds_or_ms_and_ignores_junk():
     assert refit_seconds({"refit_s": 1.5}) == 1.5
     assert refit_seconds({"topics": {"fit": {"refit_ms": 250}}}) == 0.25
