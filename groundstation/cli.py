@@ -44,6 +44,10 @@ COMMANDS: dict[tuple[str, ...], tuple[str, str]] = {
         "groundstation.bench.sessions",
         "the whole pipeline on many SITL sessions, per setting variant, scored against truth",
     ),
+    ("bench", "speed"): (
+        "groundstation.bench.speed",
+        "fit and prediction times of the estimators and the default mapper at the paper's sizes",
+    ),
     ("config", "show"): ("groundstation.config_cli", "print the effective configuration as TOML"),
     ("record",): (
         "groundstation.acquisition.record_cli",
