@@ -296,7 +296,7 @@ class SurfaceModel:
                 if warm:
                     warnings.simplefilter("ignore", ConvergenceWarning)
                 est.fit(ts.X, self._potential(ts.y), **self._weights(ts))
-            if warm and ms.model != "gpis" and ms.cold_check and est.optimize:
+            if warm and mode == "exact" and ms.model != "gpis" and ms.cold_check and est.optimize:
                 est = self._cold_check(est, mode, ts)
             t2 = time.perf_counter()
         self.fit_, self.mode_, self.training_set_ = est, mode, ts

@@ -112,9 +112,12 @@ class MappingSettings:
         BLAS threads while fitting/evaluating (0: leave the process setting alone). One thread
         was steadier and faster than two on the loaded 2-core machines (STACK.md).
     cold_check : bool
-        At warm refits that learn the kernel hyperparameters (``theta_refit_growth``), also
-        fit cold and keep the higher final ELBO (``SurfaceModel._cold_check``). The merged set
-        grows geometrically between such refits, so they are rare once a structure is covered.
+        At warm refits of the exact model that learn the kernel hyperparameters
+        (``theta_refit_growth``), also fit cold and keep the higher final ELBO
+        (``SurfaceModel._cold_check``). The set grows geometrically between such refits, so
+        they are rare; a cold exact fit on <= 1000 rows costs 1-4 s. Not in sparse mode: there
+        a cold fit took 18-31 s on the 40-minute session (a stalled live mesh), and the sparse
+        model starts from the exact model's checked state.
     inside_value : float
         Potential the estimator is given for internal points (label -1), d_in behind their
         contact. The paper's -1 makes the potential twice as steep inside (-1 at 0.1 m) as
