@@ -189,6 +189,11 @@ def run(args: argparse.Namespace) -> int:
     session, specs = plan(args, new_session_id())
     if not args.no_mapping and "detector" not in [s.name for s in specs]:
         _err("live: detector/mapper not installed: running acquisition only")
+    root = "" if session.root == "/tmp" else f" --session-root {session.root}"
+    _err(
+        f"live: session {session.session_id}; another viewer: groundstation view --session "
+        f"{session.session_id}{root} --publishers {','.join(session.publishers)}"
+    )
     stopping: list[int] = []
     old = {
         s: signal.signal(s, lambda n, f: stopping.append(n))
