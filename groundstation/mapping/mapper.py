@@ -58,6 +58,7 @@ import numpy as np
 from groundstation.contact.detector import Observation
 from groundstation.errors import GroundstationError
 from groundstation.mapping.diagnostics import diagnose
+from groundstation.mapping.robust import PLATEAU_ALPHA  # the Gaussian plateau (§7.3)
 from groundstation.mapping.settings import MapperSettings, MappingSettings, SurfaceSettings
 from groundstation.mapping.surface import SurfaceMesh
 
@@ -349,10 +350,6 @@ def _hyperparameters(model) -> dict:
     if n is not None:
         out["n_train"] = int(n)
     return out
-
-
-#: alpha at or above this: the Gaussian plateau, where every u_i is alike (ALGORITHM.md §7.3).
-PLATEAU_ALPHA = 1e4
 
 
 def _noise_floor(hyper: dict) -> dict:
