@@ -4,14 +4,10 @@ vehicle sends, and survives garbage bytes (counted in ``link.health``)."""
 
 from __future__ import annotations
 
-import glob
-import shutil
 import socket
-import threading
 import time
 
 import pytest
-import zmq
 
 from firmware_bridge.mavlink import MavlinkCodec
 from firmware_bridge.mavlink.messages import (
@@ -27,28 +23,6 @@ from groundstation.bus.pubsub import Publisher, Subscriber
 from groundstation.supervisor import Supervisor
 
 pytestmark = pytest.mark.timeout(90)
-
-
-@pytest.fixture(autouse=True)
-def _remove_session_dirs():
-    """Sessions bind ipc sockets under /tmp/gs-<id>/: remove the ones this test created."""
-    before = set(glob.glob("/tmp/gs-*"))
-    yield
-    for d in set(glob.glob("/tmp/gs-*")) - before:
-        shutil.rmtree(d, ignore_errors=True)
-
-
-@pytest.fixture
-def zctx():
-    """A context torn down under a timeout: a socket left open fails the test, never hangs."""
-    ctx = zmq.Context()
-    yield ctx
-    t = threading.Thread(target=ctx.term, daemon=True)
-    t.start()
-    t.join(10)
-    if t.is_alive():
-        ctx.destroy(linger=0)
-        pytest.fail("ZeroMQ context leak: sockets still open at teardown")
 
 
 def test_link_process_commands_pilot_forwarding_samples_and_bad_bytes(zctx):

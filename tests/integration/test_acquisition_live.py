@@ -9,21 +9,17 @@ Frames are counted, never timed.
 
 from __future__ import annotations
 
-import glob
 import os
 import select
-import shutil
 import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from collections import defaultdict
 from pathlib import Path
 
 import pytest
-import zmq
 
 from groundstation.acquisition.decoders import content_key
 from groundstation.acquisition.reader import open_recording
@@ -38,28 +34,6 @@ SAMPLES = ("samples.imu", "samples.attitude", "samples.pose")
 SIM_S = 6.0
 
 pytestmark = pytest.mark.timeout(180)
-
-
-@pytest.fixture(autouse=True)
-def _remove_session_dirs():
-    """Sessions bind ipc sockets under /tmp/gs-<id>/: remove the ones this test created."""
-    before = set(glob.glob("/tmp/gs-*"))
-    yield
-    for d in set(glob.glob("/tmp/gs-*")) - before:
-        shutil.rmtree(d, ignore_errors=True)
-
-
-@pytest.fixture
-def zctx():
-    """A context torn down under a timeout: a socket left open fails the test, never hangs."""
-    ctx = zmq.Context()
-    yield ctx
-    t = threading.Thread(target=ctx.term, daemon=True)
-    t.start()
-    t.join(10)
-    if t.is_alive():
-        ctx.destroy(linger=0)
-        pytest.fail("ZeroMQ context leak: sockets still open at teardown")
 
 
 def _free_udp_port() -> int:

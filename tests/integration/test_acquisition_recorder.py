@@ -4,16 +4,12 @@ running and counts drops; raw topics are stored as wire bytes, the others as rec
 
 from __future__ import annotations
 
-import glob
-import shutil
 import signal
 import subprocess
-import threading
 import time
 
 import numpy as np
 import pytest
-import zmq
 
 from groundstation.acquisition.reader import TruncatedRecordingWarning, open_recording
 from groundstation.acquisition.session import Session, new_session_id
@@ -24,29 +20,7 @@ from groundstation.supervisor import python_module
 pytestmark = pytest.mark.timeout(90)
 
 
-@pytest.fixture(autouse=True)
-def _remove_session_dirs():
-    """Sessions bind ipc sockets under /tmp/gs-<id>/: remove the ones this test created."""
-    before = set(glob.glob("/tmp/gs-*"))
-    yield
-    for d in set(glob.glob("/tmp/gs-*")) - before:
-        shutil.rmtree(d, ignore_errors=True)
-
-
 IMU = {"accel_mps2": np.zeros(3), "gyro_radps": np.zeros(3)}
-
-
-@pytest.fixture
-def zctx():
-    """A context torn down under a timeout: a socket left open fails the test, never hangs."""
-    ctx = zmq.Context()
-    yield ctx
-    t = threading.Thread(target=ctx.term, daemon=True)
-    t.start()
-    t.join(10)
-    if t.is_alive():
-        ctx.destroy(linger=0)
-        pytest.fail("ZeroMQ context leak: sockets still open at teardown")
 
 
 def _start_recorder(session: Session, out) -> subprocess.Popen:

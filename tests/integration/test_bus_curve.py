@@ -2,11 +2,8 @@
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import pytest
-import zmq
 
 from groundstation.bus.errors import BusSecurityError
 from groundstation.bus.pubsub import Publisher, Subscriber
@@ -14,19 +11,6 @@ from groundstation.bus.security import CurveKeys, create_key_files
 
 pytestmark = pytest.mark.timeout(60)
 IMU = {"accel_mps2": np.zeros(3), "gyro_radps": np.zeros(3)}
-
-
-@pytest.fixture
-def zctx():
-    """A context torn down under a timeout: a socket left open fails the test, never hangs."""
-    ctx = zmq.Context()
-    yield ctx
-    t = threading.Thread(target=ctx.term, daemon=True)
-    t.start()
-    t.join(10)
-    if t.is_alive():
-        ctx.destroy(linger=0)
-        pytest.fail("ZeroMQ context leak: sockets still open at teardown")
 
 
 @pytest.mark.parametrize("endpoint", ["tcp://0.0.0.0:*", "tcp://*:*"])

@@ -5,31 +5,16 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
 import pytest
-import zmq
 
 from groundstation.bus.errors import BusTimeoutError
 from groundstation.bus.pubsub import Publisher, Subscriber
 
 pytestmark = pytest.mark.timeout(60)
 IMU = {"accel_mps2": np.zeros(3), "gyro_radps": np.zeros(3)}
-
-
-@pytest.fixture
-def zctx():
-    """A context torn down under a timeout: a socket left open fails the test, never hangs."""
-    ctx = zmq.Context()
-    yield ctx
-    t = threading.Thread(target=ctx.term, daemon=True)
-    t.start()
-    t.join(10)
-    if t.is_alive():
-        ctx.destroy(linger=0)
-        pytest.fail("ZeroMQ context leak: sockets still open at teardown")
 
 
 def test_late_subscriber_process_gets_seq_0(zctx):

@@ -4,14 +4,10 @@ counted, never sent late; when commands stop, MANUAL_CONTROL stops (no repeats o
 
 from __future__ import annotations
 
-import glob
-import shutil
 import socket
-import threading
 import time
 
 import pytest
-import zmq
 
 from firmware_bridge.mavlink import MavlinkCodec
 from firmware_bridge.mavlink.messages import ManualControl, SetMessageInterval
@@ -21,26 +17,6 @@ from groundstation.bus.pubsub import Publisher, Subscriber
 from groundstation.supervisor import Supervisor
 
 pytestmark = pytest.mark.timeout(120)
-
-
-@pytest.fixture(autouse=True)
-def _remove_session_dirs():
-    before = set(glob.glob("/tmp/gs-*"))
-    yield
-    for d in set(glob.glob("/tmp/gs-*")) - before:
-        shutil.rmtree(d, ignore_errors=True)
-
-
-@pytest.fixture
-def zctx():
-    ctx = zmq.Context()
-    yield ctx
-    t = threading.Thread(target=ctx.term, daemon=True)
-    t.start()
-    t.join(10)
-    if t.is_alive():
-        ctx.destroy(linger=0)
-        pytest.fail("ZeroMQ context leak: sockets still open at teardown")
 
 
 def test_fresh_commands_once_each_stale_ones_dropped_and_none_repeated(zctx):

@@ -5,9 +5,7 @@ a loud ``status``, and a clean exit on SIGINT. Counts and contents, never timing
 
 from __future__ import annotations
 
-import glob
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -33,14 +31,6 @@ from tests.unit.pilot.fifo_joystick import FULL
 ROOT = Path(__file__).resolve().parents[2]
 
 pytestmark = pytest.mark.timeout(120)
-
-
-@pytest.fixture(autouse=True)
-def _remove_session_dirs():
-    before = set(glob.glob("/tmp/gs-*"))
-    yield
-    for d in set(glob.glob("/tmp/gs-*")) - before:
-        shutil.rmtree(d, ignore_errors=True)
 
 
 class Writer:

@@ -7,9 +7,7 @@ The SITL flies its scripted survey of the wall at real time; frames are counted,
 
 from __future__ import annotations
 
-import glob
 import json
-import shutil
 import signal
 import subprocess
 from pathlib import Path
@@ -23,14 +21,6 @@ from tests.integration.test_pilot_sitl import free_udp_port, start, stop, wait_f
 LIVE_S = 15  # status lines (~seconds) to wait for before SIGINT
 
 pytestmark = pytest.mark.timeout(240)
-
-
-@pytest.fixture(autouse=True)
-def _remove_session_dirs():
-    before = set(glob.glob("/tmp/gs-*"))
-    yield
-    for d in set(glob.glob("/tmp/gs-*")) - before:
-        shutil.rmtree(d, ignore_errors=True)
 
 
 def sitl_device(out: Path, proc: subprocess.Popen, timeout: float = 30) -> str:

@@ -12,11 +12,9 @@ recording holds every command and pilot event.
 
 from __future__ import annotations
 
-import glob
 import json
 import math
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -38,14 +36,6 @@ RATE_HZ = 25.0
 STALE_S = 0.2
 
 pytestmark = pytest.mark.timeout(240)
-
-
-@pytest.fixture(autouse=True)
-def _remove_session_dirs():
-    before = set(glob.glob("/tmp/gs-*"))
-    yield
-    for d in set(glob.glob("/tmp/gs-*")) - before:
-        shutil.rmtree(d, ignore_errors=True)
 
 
 def free_udp_port() -> int:

@@ -3,15 +3,11 @@ to the in-process iterator; a paced replay gives the same; start=/end= seek by l
 
 from __future__ import annotations
 
-import glob
-import shutil
-import threading
 import time
 from collections import defaultdict
 from pathlib import Path
 
 import pytest
-import zmq
 
 from groundstation.acquisition.decoders import content_key
 from groundstation.acquisition.reader import open_recording
@@ -26,28 +22,6 @@ SAMPLES = ("samples.imu", "samples.attitude", "samples.pose")
 RAW = ("raw.mavlink", "raw.natnet")
 
 pytestmark = pytest.mark.timeout(120)
-
-
-@pytest.fixture(autouse=True)
-def _remove_session_dirs():
-    """Sessions bind ipc sockets under /tmp/gs-<id>/: remove the ones this test created."""
-    before = set(glob.glob("/tmp/gs-*"))
-    yield
-    for d in set(glob.glob("/tmp/gs-*")) - before:
-        shutil.rmtree(d, ignore_errors=True)
-
-
-@pytest.fixture
-def zctx():
-    """A context torn down under a timeout: a socket left open fails the test, never hangs."""
-    ctx = zmq.Context()
-    yield ctx
-    t = threading.Thread(target=ctx.term, daemon=True)
-    t.start()
-    t.join(10)
-    if t.is_alive():
-        ctx.destroy(linger=0)
-        pytest.fail("ZeroMQ context leak: sockets still open at teardown")
 
 
 def bus_replay(uri: str, zctx, topics=SAMPLES) -> tuple[dict[str, list], dict[str, int]]:

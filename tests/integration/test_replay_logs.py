@@ -4,17 +4,13 @@ regenerating one gives identical decoded samples."""
 
 from __future__ import annotations
 
-import glob
 import os
-import shutil
 import subprocess
-import threading
 import time
 from collections import Counter, defaultdict
 from pathlib import Path
 
 import pytest
-import zmq
 
 from groundstation.acquisition.decoders import content_key
 from groundstation.acquisition.reader import open_recording
@@ -30,28 +26,6 @@ NAMES = ("wall_survey", "pillar_survey", "wall_slow_touch_gusts")
 SAMPLES = ("samples.imu", "samples.attitude", "samples.pose")
 
 pytestmark = pytest.mark.timeout(300)
-
-
-@pytest.fixture(autouse=True)
-def _remove_session_dirs():
-    """Sessions bind ipc sockets under /tmp/gs-<id>/: remove the ones this test created."""
-    before = set(glob.glob("/tmp/gs-*"))
-    yield
-    for d in set(glob.glob("/tmp/gs-*")) - before:
-        shutil.rmtree(d, ignore_errors=True)
-
-
-@pytest.fixture
-def zctx():
-    """A context torn down under a timeout: a socket left open fails the test, never hangs."""
-    ctx = zmq.Context()
-    yield ctx
-    t = threading.Thread(target=ctx.term, daemon=True)
-    t.start()
-    t.join(10)
-    if t.is_alive():
-        ctx.destroy(linger=0)
-        pytest.fail("ZeroMQ context leak: sockets still open at teardown")
 
 
 def _samples(path: Path) -> dict[str, list]:

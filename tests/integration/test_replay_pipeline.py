@@ -23,10 +23,8 @@ replays the same way, without truth metrics.
 from __future__ import annotations
 
 import csv
-import glob
 import json
 import math
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -47,14 +45,6 @@ PRECISION_BOUND = 0.75
 RECALL_BOUND = 0.25
 
 pytestmark = pytest.mark.timeout(900)
-
-
-@pytest.fixture(autouse=True)
-def _remove_session_dirs():
-    before = set(glob.glob("/tmp/gs-*"))
-    yield
-    for d in set(glob.glob("/tmp/gs-*")) - before:
-        shutil.rmtree(d, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")

@@ -10,13 +10,11 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-import zmq
 from matplotlib.image import imread
 
 from groundstation.bus.pubsub import Publisher
@@ -26,19 +24,6 @@ from tests.unit.viewer.sphere import circle_pose, contact_points, sphere_mesh
 
 pytestmark = pytest.mark.timeout(180)
 ROOT = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture
-def zctx():
-    """A context torn down under a timeout: a socket left open fails the test, never hangs."""
-    ctx = zmq.Context()
-    yield ctx
-    t = threading.Thread(target=ctx.term, daemon=True)
-    t.start()
-    t.join(10)
-    if t.is_alive():
-        ctx.destroy(linger=0)
-        pytest.fail("ZeroMQ context leak: sockets still open at teardown")
 
 
 def publish_mesh(pub: Publisher, fit: int, radius: float = 0.6, bad: bool = False) -> int:

@@ -12,13 +12,11 @@ import select
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-import zmq
 
 from groundstation.bus.pubsub import Publisher, Subscriber
 from groundstation.viewer.process import VIEW_TOPICS
@@ -27,18 +25,6 @@ from tests.unit.viewer.sphere import circle_pose
 
 pytestmark = pytest.mark.timeout(180)
 ROOT = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture
-def zctx():
-    ctx = zmq.Context()
-    yield ctx
-    t = threading.Thread(target=ctx.term, daemon=True)
-    t.start()
-    t.join(10)
-    if t.is_alive():
-        ctx.destroy(linger=0)
-        pytest.fail("ZeroMQ context leak: sockets still open at teardown")
 
 
 def read_until(proc: subprocess.Popen, needle: str, timeout_s: float = 60.0) -> str:
