@@ -138,6 +138,11 @@ class ContactDetector:
     def in_contact(self) -> bool:
         return self._event is not None
 
+    @property
+    def open_event(self) -> ContactEvent | None:
+        """The contact event in progress (None when not in contact)."""
+        return self._event
+
     def _observe(self, t_ns, position, label, normal, event_id, accel_g) -> Observation:
         obs = Observation(self._next_id, t_ns, position, label, normal, event_id, accel_g)
         self._next_id += 1

@@ -266,7 +266,7 @@ class ContactStage:
         )
         out: list[Envelope] = []
         if det.stats.contacts > n_events:  # a contact began at this sample
-            ev = det._event  # noqa: SLF001 - same package: the open event
+            ev = det.open_event
             pos = _NAN3 if ev.position is None else ev.position
             out.append(self._event_env("begin", ev.id, ev.peak_g, pos, ev.normal, t))
         elif was_in and not det.in_contact:  # a contact ended at this sample

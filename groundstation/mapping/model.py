@@ -102,6 +102,9 @@ class SurfaceModel:
         ``merge_s``, ``fit_s`` (last ``fit``), ``field_s``, ``mesh_s`` (last ``mesh``), seconds.
     last_field_ : BandField
         The narrow-band field of the last ``mesh`` call.
+    cold_checks_, cold_wins_ : int
+        Cold fits run beside warm refits (``mapping.cold_check``) and how many had the higher
+        ELBO.
     """
 
     def __init__(
@@ -118,6 +121,8 @@ class SurfaceModel:
         self._estimators: dict[str, object] = {}
         self._merger: StreamingMerger | None = None
         self._n_theta = 0  # merged size at the last fit that learnt the kernel hyperparameters
+        self.cold_checks_ = 0  # cold fits run beside warm refits (mapping.cold_check)
+        self.cold_wins_ = 0  # ... and how many of them won on the ELBO
 
     # ------------------------------------------------------------------ fit
 
@@ -326,9 +331,9 @@ class SurfaceModel:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
             cold.fit(ts.X, self._potential(ts.y), **self._weights(ts))
-        self.cold_checks_ = getattr(self, "cold_checks_", 0) + 1
+        self.cold_checks_ += 1
         if cold.elbo_trace_[-1] > est.elbo_trace_[-1]:
-            self.cold_wins_ = getattr(self, "cold_wins_", 0) + 1
+            self.cold_wins_ += 1
             self._estimators[mode] = cold
             return cold
         return est
