@@ -71,14 +71,14 @@ def _progress_offline(quiet: bool):
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.pipeline import load_pipeline_config
+    from groundstation.config import load_config
 
     log = Path(args.log)
     if not log.is_file():
         raise InputDataError(f"recording {str(log)!r} does not exist")
     if args.snapshots < 0:
         raise ConfigError(f"--snapshots must be >= 0, got {args.snapshots}")
-    config = load_pipeline_config(args.config, args.set)  # validate once, here
+    config = load_config(args.config, args.set)  # validate once, here
     if args.processes or math.isfinite(args.speed):
         from groundstation.pipeline.multiprocess import run_multiprocess
 

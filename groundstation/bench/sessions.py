@@ -119,15 +119,15 @@ def evaluate_log(log: str, overrides: Sequence[str]) -> dict:
     """Replay ``log`` in process with ``overrides``; the report plus per-event (kind, u)."""
     import warnings
 
+    from groundstation.config import load_config
     from groundstation.errors import ConvergenceWarning
-    from groundstation.pipeline import load_pipeline_config
     from groundstation.pipeline.offline import run_offline
     from groundstation.pipeline.outputs import build_report, detected_events
     from groundstation.pipeline.scoring import match_events
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
-        res = run_offline(log, load_pipeline_config(None, list(overrides)))
+        res = run_offline(log, load_config(None, list(overrides)))
     report = build_report(res)
     events: list[tuple[str, float]] = []
     fit = res.final
@@ -248,13 +248,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from groundstation.pipeline import load_pipeline_config
+    from groundstation.config import load_config
 
     variants = [Variant.parse(v) for v in args.variant] or [Variant("default")]
     if len({v.name for v in variants}) != len(variants):
         raise ConfigError("--variant names must be unique")
     for v in variants:
-        load_pipeline_config(None, [*args.set, *v.overrides])  # fail before any work
+        load_config(None, [*args.set, *v.overrides])  # fail before any work
     if args.logs:
         logs = [str(Path(p)) for p in args.logs]
         missing = [p for p in logs if not Path(p).is_file()]

@@ -47,8 +47,8 @@ from groundstation.acquisition.session import (
 )
 from groundstation.bus.errors import BusTimeoutError
 from groundstation.bus.pubsub import Publisher, Subscriber
+from groundstation.config import Config, load_config
 from groundstation.contact.stage import INPUT_TOPICS, ContactStage
-from groundstation.pipeline import PipelineConfig, load_pipeline_config
 
 TOPICS = ("observations", "contact.event", "status", "log")
 DETECTOR_FINISHED = "detector finished"
@@ -60,7 +60,7 @@ class DetectorProcess:
     def __init__(
         self,
         session: Session,
-        config: PipelineConfig,
+        config: Config,
         *,
         name: str = "detector",
         flow_from: str | None = None,
@@ -74,7 +74,7 @@ class DetectorProcess:
         self.ctx = context or zmq.Context()
         self.pub = Publisher(topics=TOPICS, context=self.ctx, **session.publisher_kwargs(name))
         self.sub: Subscriber | None = None
-        self.stage = ContactStage(config.config.contact, config.alignment, first_id=first_id)
+        self.stage = ContactStage(config.contact, config.alignment, first_id=first_id)
         self.rates = RateCounter()
         self.state = "starting"
         self.finished = False
@@ -84,7 +84,7 @@ class DetectorProcess:
             self.pub.wait_for_subscribers(
                 self.wait_subscribers,
                 ("observations",),
-                self.config.config.acquisition.subscriber_timeout_s,
+                self.config.acquisition.subscriber_timeout_s,
             )
         except BusTimeoutError as exc:
             publish_log(self.pub, self.name, "warning", f"starting anyway: {exc.message}")
@@ -200,7 +200,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = StopSignals()
     proc = DetectorProcess(
         session_from_args(args),
-        load_pipeline_config(args.config, args.set),
+        load_config(args.config, args.set),
         name=args.name,
         flow_from=args.flow_from,
         wait_subscribers=args.wait_subscribers,

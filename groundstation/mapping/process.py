@@ -50,11 +50,11 @@ from groundstation.acquisition.session import (
 )
 from groundstation.bus.errors import BusTimeoutError
 from groundstation.bus.pubsub import Publisher, Subscriber
+from groundstation.config import Config, load_config
 from groundstation.contact.detector import Observation
 from groundstation.contact.process import DETECTOR_FINISHED
 from groundstation.contact.stage import observation_from_envelope
 from groundstation.mapping.mapper import FitResult, Mapper
-from groundstation.pipeline import PipelineConfig, load_pipeline_config
 
 TOPICS = ("mesh", "mapper.fit", "status", "log")
 MAPPER_FINISHED = "mapper finished"
@@ -88,7 +88,7 @@ class MapperProcess:
     def __init__(
         self,
         session: Session,
-        config: PipelineConfig,
+        config: Config,
         *,
         name: str = "mapper",
         recording: str | None = None,
@@ -99,8 +99,7 @@ class MapperProcess:
         self.recording, self.wait_subscribers = recording, wait_subscribers
         self.ctx = context or zmq.Context()
         self.pub = Publisher(topics=TOPICS, context=self.ctx, **session.publisher_kwargs(name))
-        c = config.config
-        self.mapper = Mapper(config.mapper, c.mapping, c.surface)
+        self.mapper = Mapper(config.mapper, config.mapping, config.surface)
         self.inbox: queue.Queue = queue.Queue()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -257,7 +256,7 @@ class MapperProcess:
                     self.pub.wait_for_subscribers(
                         self.wait_subscribers,
                         ("mapper.fit",),
-                        self.config.config.acquisition.subscriber_timeout_s,
+                        self.config.acquisition.subscriber_timeout_s,
                     )
                 except BusTimeoutError as exc:
                     publish_log(self.pub, self.name, "warning", f"starting anyway: {exc.message}")
@@ -313,7 +312,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = StopSignals()
     proc = MapperProcess(
         session_from_args(args),
-        load_pipeline_config(args.config, args.set),
+        load_config(args.config, args.set),
         name=args.name,
         recording=args.recording,
         wait_subscribers=args.wait_subscribers,

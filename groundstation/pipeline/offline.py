@@ -17,10 +17,10 @@ from collections.abc import Callable
 from groundstation.acquisition.reader import open_recording
 from groundstation.acquisition.replay import iter_replay
 from groundstation.bus.envelope import Envelope
+from groundstation.config import Config, load_config
 from groundstation.contact.detector import Observation
 from groundstation.contact.stage import INPUT_TOPICS, ContactStage, observation_from_envelope
 from groundstation.mapping.mapper import FitResult, Mapper
-from groundstation.pipeline import PipelineConfig, load_pipeline_config
 
 Progress = Callable[[float, float, int, int], None]  # (log s done, log s total, refits, contacts)
 
@@ -96,7 +96,7 @@ def recording_span(path: str) -> tuple[int, float, dict | None]:
 
 def run_offline(
     log_path: str,
-    config: PipelineConfig | None = None,
+    config: Config | None = None,
     *,
     progress: Progress | None = None,
     keep_meshes: int = 3,
@@ -107,19 +107,18 @@ def run_offline(
     ----------
     log_path : str
         MCAP recording (a truncated one is read up to its last complete chunk).
-    config : PipelineConfig, optional
+    config : Config, optional
         Defaults when None.
     progress : callable, optional
         Called about every 5 s of log time with (log s done, log s total, refits, contacts).
     keep_meshes : int
         Keep the meshes of this many last fits (for snapshots).
     """
-    pc = config or load_pipeline_config()
-    cfg = pc.config
+    cfg = config or load_config()
     t_wall = time.perf_counter()
     start_ns, duration, truth = recording_span(log_path)
-    stage = ContactStage(cfg.contact, pc.alignment)
-    mapper = Mapper(pc.mapper, cfg.mapping, cfg.surface)
+    stage = ContactStage(cfg.contact, cfg.alignment)
+    mapper = Mapper(cfg.mapper, cfg.mapping, cfg.surface)
     events: list[Envelope] = []
     observations: list[Observation] = []
     fits: list[FitResult] = []

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from groundstation.pipeline import load_pipeline_config
+from groundstation.config import load_config
 from groundstation.pipeline.multiprocess import run_multiprocess
 from groundstation.pipeline.offline import event_key, run_offline
 from groundstation.pipeline.outputs import build_report
@@ -59,7 +59,7 @@ def runs() -> dict:
     out = {}
     for name in NAMES:
         log = str(ROOT / "replay_logs" / f"{name}.mcap")
-        offline = run_offline(log, load_pipeline_config())
+        offline = run_offline(log, load_config())
         multi = run_multiprocess(log, timeout_s=600)
         out[name] = (offline, multi)
     return out
@@ -150,7 +150,7 @@ def test_a_contact_free_real_flight_replays_without_truth(external_data, tmp_pat
 
     log = tmp_path / "flight.mcap"
     import_csv(external_data / "aggressive_flight" / "Horizontal" / "path_1" / "IMU_1.csv", log)
-    result = run_offline(str(log), load_pipeline_config())
+    result = run_offline(str(log), load_config())
     report = build_report(result)
     assert report["duration_s"] > 15 and math.isfinite(report["contacts_per_min"])
     assert "chamfer_m" not in report and "fp_precision" not in report  # no truth in the log
