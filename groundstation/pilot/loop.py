@@ -37,6 +37,7 @@ def run_pilot_loop(
     *,
     clock: Callable[[], int] = time.monotonic_ns,
     max_ticks: int | None = None,
+    stats: LoopStats | None = None,
 ) -> LoopStats:
     """Tick ``commander`` at ``settings.rate_hz`` until ``stop`` is set (or ``max_ticks``).
 
@@ -52,8 +53,11 @@ def run_pilot_loop(
         Set to end the loop.
     clock : callable
         Monotonic ns clock, the same one the device stamps alive reports with.
+    stats : LoopStats, optional
+        Counters updated in place while the loop runs (a status reader sees them live);
+        returned.
     """
-    stats = LoopStats()
+    stats = stats if stats is not None else LoopStats()
     schedule = RateSchedule(commander.settings.period_ns, clock())
     while not stop.is_set():
         snap = snapshot()

@@ -203,8 +203,13 @@ class PilotProcess:
                     "run 'groundstation joystick calibrate'",
                 )  # fmt: skip
             self.device.start()
-            self.loop_stats = run_pilot_loop(
-                self.device.snapshot, self.commander, self.emit, stop, max_ticks=max_ticks
+            run_pilot_loop(
+                self.device.snapshot,
+                self.commander,
+                self.emit,
+                stop,
+                max_ticks=max_ticks,
+                stats=self.loop_stats,  # updated in place: the status shows live counts
             )
             return 0
         finally:

@@ -131,3 +131,5 @@ def test_pilot_process_publishes_commands_only_while_armed_and_every_raw_byte(tm
     texts = [e.payload.get("text", "") for e in by("status")]
     assert any("EMERGENCY STOP" in t for t in texts), texts
     assert by("status")[-1].payload["state"] == "stopped"
+    ticks = [e.payload["topics"]["loop"]["ticks"] for e in by("status")]
+    assert ticks == sorted(ticks) and ticks[-2] > 50  # live counts while running (50 Hz)
