@@ -22,10 +22,6 @@ import numpy as np
 from groundstation.pipeline.offline import PipelineResult
 from groundstation.pipeline.scoring import DetectedEvent, score
 
-REPORT_KEYS = (
-    "duration_s", "contacts", "contacts_per_min", "observations", "refits", "refit_s_median",
-)  # fmt: skip
-
 
 def detected_events(result: PipelineResult) -> list[DetectedEvent]:
     """Begin messages of the run with the final fit's flag."""
