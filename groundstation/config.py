@@ -14,7 +14,7 @@ import typing
 from pathlib import Path
 from typing import Any
 
-from groundstation.acquisition.session import AcquisitionSettings
+from groundstation.acquisition.settings import AcquisitionSettings
 from groundstation.contact.settings import AlignmentSettings, ContactSettings
 from groundstation.errors import ConfigError
 from groundstation.mapping.settings import MapperSettings, MappingSettings, SurfaceSettings

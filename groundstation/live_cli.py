@@ -1,15 +1,15 @@
 """``groundstation live --link URI [--mocap URI] [--joystick DEV] [--record FILE] [...]``
 
 Starts every process of a live session under the supervisor, on one session bus
-(:mod:`groundstation.acquisition.session`), in this order::
+(:mod:`groundstation.runtime.session`), in this order::
 
     recorder (--record)  link  mocap (--mocap)  pilot (--joystick)  mapper  detector  viewer
 
 (the detector and mapper when their modules are installed and ``--no-mapping`` is not given; the
 viewer unless ``--no-viewer``: a window by default, ``--headless --out DIR`` for PNG/PLY files).
 This process is only the operator's terminal: a monitor subscriber feeds
-:class:`~groundstation.status.StatusBoard`, which prints one status line per second (rates per
-stream, gaps, contacts, observations, refit time, mesh age, the pilot path -- a failsafe in
+:class:`~groundstation.runtime.status.StatusBoard`, which prints one status line per second (rates
+per stream, gaps, contacts, observations, refit time, mesh age, the pilot path -- a failsafe in
 upper case with its reason) and, at once, warnings, errors and pilot faults.
 
 Ctrl-C (or SIGTERM, or ``--duration``) stops the workers in reverse start order -- viewer,
@@ -34,12 +34,12 @@ import sys
 import time
 from pathlib import Path
 
-from groundstation.acquisition.session import Session, load_settings, new_session_id
-from groundstation.acquisition.sources import source_worker
 from groundstation.bus.pubsub import Subscriber
 from groundstation.errors import ConfigError, GroundstationError
-from groundstation.status import StatusBoard
-from groundstation.supervisor import Supervisor, WorkerSpec, python_module
+from groundstation.runtime.session import Session, load_settings, new_session_id
+from groundstation.runtime.sources import source_worker
+from groundstation.runtime.status import StatusBoard
+from groundstation.runtime.supervisor import Supervisor, WorkerSpec, python_module
 
 #: What the monitor subscribes to (every data topic of the sources, so that it is one of the
 #: subscribers the sources wait for; large latest-value state such as meshes is decoded once).
@@ -48,10 +48,10 @@ MONITOR_TOPICS = (
     "link.health", "status", "log", "pilot.command", "pilot.event", "contact.event",
     "observations", "mapper.fit", "mesh",
 )  # fmt: skip
-DETECTOR_MODULE = "groundstation.contact.process"
-MAPPER_MODULE = "groundstation.mapping.process"
+DETECTOR_MODULE = "groundstation.runtime.workers.detector"
+MAPPER_MODULE = "groundstation.runtime.workers.mapper"
 VIEWER_MODULE = "groundstation.viewer.view_cli"
-PILOT_MODULE = "groundstation.pilot.process"
+PILOT_MODULE = "groundstation.runtime.workers.pilot"
 _DRAIN_MS = 300
 
 
@@ -109,7 +109,7 @@ def plan(args: argparse.Namespace, session_id: str) -> tuple[Session, list[Worke
             WorkerSpec(
                 "recorder",
                 python_module(
-                    "groundstation.acquisition.recorder_process",
+                    "groundstation.runtime.workers.recorder",
                     *session.as_args(),
                     "--out",
                     str(args.record),

@@ -1,7 +1,7 @@
 """``groundstation record --link URI [--mocap URI] --out LOG.mcap [--duration S]``
 
 Runs the link process, the mocap process and the recorder process under the supervisor (one
-session, :mod:`groundstation.acquisition.session`), prints one status line per second (rate per
+session, :mod:`groundstation.runtime.session`), prints one status line per second (rate per
 stream and bus gaps as the recorder sees them, bytes written, process states; warnings and
 errors from ``log`` as they come), and stops after ``--duration`` seconds or on Ctrl-C: sources
 first, then the recorder, which drains its queue and closes the file, so the file is complete.
@@ -17,11 +17,11 @@ import sys
 import time
 
 from groundstation.acquisition.reader import open_recording
-from groundstation.acquisition.session import Session, load_settings, new_session_id
-from groundstation.acquisition.sources import source_worker
 from groundstation.bus.pubsub import Subscriber
 from groundstation.errors import GroundstationError
-from groundstation.supervisor import Supervisor, WorkerSpec, python_module
+from groundstation.runtime.session import Session, load_settings, new_session_id
+from groundstation.runtime.sources import source_worker
+from groundstation.runtime.supervisor import Supervisor, WorkerSpec, python_module
 
 _SHORT = {
     "samples.imu": "imu",
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     ]
     sources = [args.link] + ([args.mocap] if args.mocap else [])
     recorder_argv = python_module(
-        "groundstation.acquisition.recorder_process", *session.as_args(), "--out", args.out,
+        "groundstation.runtime.workers.recorder", *session.as_args(), "--out", args.out,
         "--created-by", "groundstation record " + " ".join(sys.argv[1:]),
         *[a for s in sources for a in ("--source", s)], *cfg,
     )  # fmt: skip

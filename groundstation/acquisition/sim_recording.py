@@ -39,7 +39,7 @@ from firmware_bridge.mavlink.messages import SetMessageInterval, Timesync
 from groundstation.acquisition import layout
 from groundstation.acquisition.decoders import MavlinkStreamDecoder, NatNetStreamDecoder
 from groundstation.acquisition.recorder import Recorder, RecorderStats
-from groundstation.acquisition.session import AcquisitionSettings
+from groundstation.acquisition.settings import AcquisitionSettings
 
 LINK_SOURCE = "sitl://pty"
 MOCAP_SOURCE = "sitl://natnet"

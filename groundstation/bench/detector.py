@@ -687,7 +687,7 @@ def simulate_session(scene: str, pilot: str, seed: int, duration_s: float | None
     from firmware_bridge.sitl.runner import Simulation
     from firmware_bridge.sitl.scene import load_scene
     from groundstation.acquisition.decoders import MavlinkStreamDecoder, NatNetStreamDecoder
-    from groundstation.acquisition.session import AcquisitionSettings
+    from groundstation.acquisition.settings import AcquisitionSettings
 
     sim = Simulation(
         load_scene(scene), f"script:{pilot}", seed=seed, duration=duration_s or MAX_SIM_S

@@ -1,7 +1,7 @@
 """The detector stage (pure): sample envelopes in, observation and contact-event envelopes out.
 
 One class, two shells: :class:`ContactStage` runs inside the detector process
-(``groundstation.contact.process``) and inside the offline pipeline
+(``groundstation.runtime.workers.detector``) and inside the offline pipeline
 (``groundstation.pipeline.offline``), so both produce the same contact events from the same log.
 
 Pairing (time axis: ``t_station_ns`` of each sample, see ``acquisition/decoders.py``)

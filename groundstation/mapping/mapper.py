@@ -5,7 +5,7 @@ from the *data* clock when a refit is due, refits the default surface model
 (:class:`~groundstation.mapping.model.SurfaceModel`: merge, exact/sparse robust GPIS warm-started
 from the previous fit, narrow-band mesh) on everything received so far, checks the fit
 (:func:`~groundstation.mapping.diagnostics.diagnose`) and returns a :class:`FitResult`. The mapper
-process (``mapping/process.py``) and the offline pipeline run this same object.
+process (``runtime/workers/mapper.py``) and the offline pipeline run this same object.
 
 Schedule (:meth:`Mapper.due`)
 -----------------------------

@@ -2,7 +2,7 @@
 
 - :mod:`~groundstation.pipeline.offline`: in process, no sockets (fast, deterministic).
 - :mod:`~groundstation.pipeline.multiprocess`: the same stages as real processes on a session
-  bus under the supervisor (replay source, ``contact.process``, ``mapping.process``).
+  bus under the supervisor (``runtime.workers``: replay source, detector, mapper).
 - :mod:`~groundstation.pipeline.scoring` (pure): metrics against the recording's truth.
 - :mod:`~groundstation.pipeline.outputs`: mesh.ply, observations.csv, report.json, snapshots.
 

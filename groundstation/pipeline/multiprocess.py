@@ -1,13 +1,13 @@
 """The pipeline as real processes on a session bus, for a replay source.
 
-Workers (under :class:`~groundstation.supervisor.Supervisor`, session endpoints from
-:mod:`groundstation.acquisition.session`, publishers ``replay``, ``detector``, ``mapper``):
+Workers (under :class:`~groundstation.runtime.supervisor.Supervisor`, session endpoints from
+:mod:`groundstation.runtime.session`, publishers ``replay``, ``detector``, ``mapper``):
 
-- ``replay``: ``python -m groundstation.acquisition.replay --uri replay://LOG?speed=...``
+- ``replay``: ``python -m groundstation.runtime.workers.replay --uri replay://LOG?speed=...``
   (credit flow control at ``speed=max``: the detector is its one consumer);
-- ``detector``: ``python -m groundstation.contact.process --flow-from replay
+- ``detector``: ``python -m groundstation.runtime.workers.detector --flow-from replay
   --wait-subscribers 2`` (the mapper and this collector);
-- ``mapper``: ``python -m groundstation.mapping.process --wait-subscribers 1``
+- ``mapper``: ``python -m groundstation.runtime.workers.mapper --wait-subscribers 1``
   (``OPENBLAS_NUM_THREADS=1``).
 
 This process subscribes to ``observations``, ``contact.event``, ``mapper.fit``, ``mesh`` and
@@ -25,16 +25,16 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from groundstation.acquisition.session import REPLAY_PUBLISHER, Session, new_session_id
-from groundstation.acquisition.sources import source_worker
 from groundstation.bus.pubsub import Subscriber
-from groundstation.contact.process import DETECTOR_FINISHED
 from groundstation.contact.stage import observation_from_envelope
 from groundstation.errors import GroundstationError
 from groundstation.mapping.mapper import FitResult
 from groundstation.mapping.surface import SurfaceMesh
 from groundstation.pipeline.offline import PipelineResult, recording_span
-from groundstation.supervisor import Supervisor, WorkerSpec, python_module
+from groundstation.runtime.session import REPLAY_PUBLISHER, Session, new_session_id
+from groundstation.runtime.sources import source_worker
+from groundstation.runtime.supervisor import Supervisor, WorkerSpec, python_module
+from groundstation.runtime.workers.detector import DETECTOR_FINISHED
 
 COLLECT = ("observations", "contact.event", "mapper.fit", "mesh", "log")
 
@@ -67,14 +67,14 @@ def pipeline_workers(
     detector = WorkerSpec(
         "detector",
         python_module(
-            "groundstation.contact.process", *session.as_args(), "--name", "detector",
+            "groundstation.runtime.workers.detector", *session.as_args(), "--name", "detector",
             "--flow-from", REPLAY_PUBLISHER, "--wait-subscribers", "2", *common,
         ),
     )  # fmt: skip
     mapper = WorkerSpec(
         "mapper",
         python_module(
-            "groundstation.mapping.process", *session.as_args(), "--name", "mapper",
+            "groundstation.runtime.workers.mapper", *session.as_args(), "--name", "mapper",
             "--wait-subscribers", "1", *common,
         ),
         env=(("OPENBLAS_NUM_THREADS", "1"), ("OMP_NUM_THREADS", "1")),

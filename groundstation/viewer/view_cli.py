@@ -70,7 +70,7 @@ def _endpoints(args: argparse.Namespace) -> list[str]:
         if not eps:
             raise ConfigError(f"--connect {args.connect!r} names no endpoint")
         return eps
-    from groundstation.acquisition.session import Session
+    from groundstation.runtime.session import Session
 
     kw = {}
     if args.publishers:
@@ -122,9 +122,9 @@ def _make_sink(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     import signal
 
-    from groundstation.acquisition.session import StopSignals
     from groundstation.bus.security import check_endpoint
-    from groundstation.viewer.process import ViewerProcess
+    from groundstation.runtime.session import StopSignals
+    from groundstation.runtime.workers.viewer import ViewerProcess
 
     endpoints = _endpoints(args)
     for ep in endpoints:

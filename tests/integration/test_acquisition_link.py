@@ -17,10 +17,10 @@ from firmware_bridge.mavlink.messages import (
     SetMessageInterval,
     Timesync,
 )
-from groundstation.acquisition.session import Session, new_session_id
-from groundstation.acquisition.sources import source_worker
 from groundstation.bus.pubsub import Publisher, Subscriber
-from groundstation.supervisor import Supervisor
+from groundstation.runtime.session import Session, new_session_id
+from groundstation.runtime.sources import source_worker
+from groundstation.runtime.supervisor import Supervisor
 
 pytestmark = pytest.mark.timeout(90)
 

@@ -24,10 +24,10 @@ import pytest
 from groundstation.acquisition.decoders import content_key
 from groundstation.acquisition.reader import open_recording
 from groundstation.acquisition.replay import FINISHED, iter_replay
-from groundstation.acquisition.session import REPLAY_PUBLISHER, Session, new_session_id
-from groundstation.acquisition.sources import source_worker
 from groundstation.bus.pubsub import Subscriber
-from groundstation.supervisor import Supervisor, WorkerSpec, python_module
+from groundstation.runtime.session import REPLAY_PUBLISHER, Session, new_session_id
+from groundstation.runtime.sources import source_worker
+from groundstation.runtime.supervisor import Supervisor, WorkerSpec, python_module
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ("samples.imu", "samples.attitude", "samples.pose")
@@ -123,7 +123,7 @@ def test_sitl_session_recorded_and_replayed_gives_the_same_samples(tmp_path, zct
                 WorkerSpec(
                     "recorder",
                     python_module(
-                        "groundstation.acquisition.recorder_process",
+                        "groundstation.runtime.workers.recorder",
                         *session.as_args(),
                         "--out",
                         str(out),

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from groundstation.acquisition.reader import TruncatedRecordingWarning, open_recording
-from groundstation.acquisition.session import Session, new_session_id
 from groundstation.bus.envelope import from_bytes
 from groundstation.bus.pubsub import Publisher, Subscriber
-from groundstation.supervisor import python_module
+from groundstation.runtime.session import Session, new_session_id
+from groundstation.runtime.supervisor import python_module
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -25,7 +25,7 @@ IMU = {"accel_mps2": np.zeros(3), "gyro_radps": np.zeros(3)}
 
 def _start_recorder(session: Session, out) -> subprocess.Popen:
     argv = python_module(
-        "groundstation.acquisition.recorder_process", *session.as_args(), "--out", str(out)
+        "groundstation.runtime.workers.recorder", *session.as_args(), "--out", str(out)
     )
     return subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 

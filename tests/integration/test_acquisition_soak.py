@@ -21,11 +21,11 @@ from firmware_bridge.sitl.runner import Simulation
 from firmware_bridge.sitl.scene import load_scene
 from groundstation.acquisition.reader import open_recording
 from groundstation.acquisition.replay import FINISHED, iter_replay
-from groundstation.acquisition.session import REPLAY_PUBLISHER, Session, new_session_id
 from groundstation.acquisition.sim_recording import write_simulation
-from groundstation.acquisition.sources import source_worker
 from groundstation.bus.pubsub import Subscriber
-from groundstation.supervisor import Supervisor, WorkerSpec, python_module
+from groundstation.runtime.session import REPLAY_PUBLISHER, Session, new_session_id
+from groundstation.runtime.sources import source_worker
+from groundstation.runtime.supervisor import Supervisor, WorkerSpec, python_module
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ("samples.imu", "samples.attitude", "samples.pose")
@@ -104,7 +104,7 @@ def test_live_bus_latency_and_gaps_at_real_time(tmp_path):
         wait = ("--wait-subscribers", "2")
         sup = Supervisor([
             WorkerSpec("recorder", python_module(
-                "groundstation.acquisition.recorder_process", *session.as_args(),
+                "groundstation.runtime.workers.recorder", *session.as_args(),
                 "--out", str(tmp_path / "live.mcap"))),
             source_worker(f"serial://{device}", session, "link", wait),
             source_worker("natnet://127.0.0.1:15733", session, "mocap", wait),

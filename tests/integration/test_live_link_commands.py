@@ -11,10 +11,10 @@ import pytest
 
 from firmware_bridge.mavlink import MavlinkCodec
 from firmware_bridge.mavlink.messages import ManualControl, SetMessageInterval
-from groundstation.acquisition.session import Session, new_session_id
-from groundstation.acquisition.sources import source_worker
 from groundstation.bus.pubsub import Publisher, Subscriber
-from groundstation.supervisor import Supervisor
+from groundstation.runtime.session import Session, new_session_id
+from groundstation.runtime.sources import source_worker
+from groundstation.runtime.supervisor import Supervisor
 
 pytestmark = pytest.mark.timeout(120)
 

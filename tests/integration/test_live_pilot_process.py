@@ -16,7 +16,6 @@ from pathlib import Path
 import pytest
 import zmq
 
-from groundstation.acquisition.session import Session, new_session_id
 from groundstation.bus.pubsub import Subscriber
 from groundstation.pilot.jsevent import (
     JS_EVENT_AXIS,
@@ -25,6 +24,7 @@ from groundstation.pilot.jsevent import (
     encode_events,
     init_burst,
 )
+from groundstation.runtime.session import Session, new_session_id
 from tests.integration.test_pilot_sitl import PAD, write_calibration
 from tests.unit.pilot.fifo_joystick import FULL
 
@@ -86,7 +86,7 @@ def test_pilot_process_publishes_commands_only_while_armed_and_every_raw_byte(tm
                 got.append(env)
 
     proc = subprocess.Popen(
-        [sys.executable, "-m", "groundstation.pilot.process", *session.as_args(),
+        [sys.executable, "-m", "groundstation.runtime.workers.pilot", *session.as_args(),
          "--device", str(fifo), "--rate", "50", "--wait-subscribers", "1",
          "--set", f"pilot.device_name={PAD}", "--set", f"pilot.calibration_path={cal}"],
         cwd=ROOT, stdin=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,

@@ -21,7 +21,7 @@ import pytest
 
 from groundstation.acquisition.reader import open_recording
 from groundstation.bus.envelope import decode, unpack_frames
-from groundstation.status import refit_seconds
+from groundstation.runtime.status import refit_seconds
 from tests.integration.test_live_smoke import run_live_against_sitl
 from tests.integration.test_pilot_sitl import (
     PAD,

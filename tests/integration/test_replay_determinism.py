@@ -12,10 +12,10 @@ import pytest
 from groundstation.acquisition.decoders import content_key
 from groundstation.acquisition.reader import open_recording
 from groundstation.acquisition.replay import FINISHED, iter_replay
-from groundstation.acquisition.session import REPLAY_PUBLISHER, Session, new_session_id
-from groundstation.acquisition.sources import parse_replay_uri, source_worker
 from groundstation.bus.pubsub import Subscriber
-from groundstation.supervisor import Supervisor
+from groundstation.runtime.session import REPLAY_PUBLISHER, Session, new_session_id
+from groundstation.runtime.sources import parse_replay_uri, source_worker
+from groundstation.runtime.supervisor import Supervisor
 
 LOG = Path(__file__).resolve().parents[2] / "replay_logs" / "pillar_survey.mcap"
 SAMPLES = ("samples.imu", "samples.attitude", "samples.pose")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 import time
 
-from groundstation.supervisor import Supervisor, WorkerSpec
+from groundstation.runtime.supervisor import Supervisor, WorkerSpec
 
 
 def _wait_for(predicate, timeout=10.0):

@@ -18,8 +18,8 @@ import pytest
 from matplotlib.image import imread
 
 from groundstation.bus.pubsub import Publisher
+from groundstation.runtime.workers.viewer import VIEW_TOPICS, ViewerProcess
 from groundstation.viewer.headless import HeadlessSink
-from groundstation.viewer.process import VIEW_TOPICS, ViewerProcess
 from tests.unit.viewer.sphere import circle_pose, contact_points, sphere_mesh
 
 pytestmark = pytest.mark.timeout(180)

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from groundstation.bus.pubsub import Publisher, Subscriber
-from groundstation.viewer.process import VIEW_TOPICS
+from groundstation.runtime.workers.viewer import VIEW_TOPICS
 from tests.integration.test_viewer_headless import publish_mesh, publish_state
 from tests.unit.viewer.sphere import circle_pose
 

@@ -7,7 +7,7 @@ import numpy as np
 
 from groundstation.bus.envelope import Envelope, Header
 from groundstation.pilot.mux import FAILSAFE, status_line
-from groundstation.status import StatusBoard, refit_seconds
+from groundstation.runtime.status import StatusBoard, refit_seconds
 
 S = 1_000_000_000
 

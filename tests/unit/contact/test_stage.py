@@ -176,7 +176,7 @@ def test_first_id_auto_numbers_after_any_earlier_incarnation():
     import argparse
     import time
 
-    from groundstation.contact.process import first_id
+    from groundstation.runtime.workers.detector import first_id
 
     assert first_id("7") == 7
     before = time.time_ns() // 1000

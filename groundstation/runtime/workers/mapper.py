@@ -2,7 +2,7 @@
 
 Command line (started by the supervisor, with ``OPENBLAS_NUM_THREADS=1`` in its environment)::
 
-    python -m groundstation.mapping.process --session ID [--session-root /tmp]
+    python -m groundstation.runtime.workers.mapper --session ID [--session-root /tmp]
         --publishers detector[,...]            # who publishes observations
         [--name mapper] [--recording SESSION.mcap] [--wait-subscribers 0]
         [--config FILE] [--set mapper.KEY=VALUE --set mapping.KEY=VALUE ...]
@@ -41,20 +41,20 @@ from collections.abc import Sequence
 import numpy as np
 import zmq
 
-from groundstation.acquisition.session import (
+from groundstation.bus.errors import BusTimeoutError
+from groundstation.bus.pubsub import Publisher, Subscriber
+from groundstation.config import Config, load_config
+from groundstation.contact.detector import Observation
+from groundstation.contact.stage import observation_from_envelope
+from groundstation.mapping.mapper import FitResult, Mapper
+from groundstation.runtime.session import (
     Session,
     StopSignals,
     add_session_arguments,
     publish_log,
     session_from_args,
 )
-from groundstation.bus.errors import BusTimeoutError
-from groundstation.bus.pubsub import Publisher, Subscriber
-from groundstation.config import Config, load_config
-from groundstation.contact.detector import Observation
-from groundstation.contact.process import DETECTOR_FINISHED
-from groundstation.contact.stage import observation_from_envelope
-from groundstation.mapping.mapper import FitResult, Mapper
+from groundstation.runtime.workers.detector import DETECTOR_FINISHED
 
 TOPICS = ("mesh", "mapper.fit", "status", "log")
 MAPPER_FINISHED = "mapper finished"
@@ -298,7 +298,7 @@ class MapperProcess:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m groundstation.mapping.process")
+    p = argparse.ArgumentParser(prog="python -m groundstation.runtime.workers.mapper")
     add_session_arguments(p)
     p.add_argument("--name", default="mapper", help="process name (its endpoint)")
     p.add_argument("--recording", default=None, help="session MCAP to restore observations from")

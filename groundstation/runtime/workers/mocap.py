@@ -1,6 +1,6 @@
 """The mocap process: the one owner of the NatNet socket.
 
-``python -m groundstation.acquisition.mocap_process --session ID --mocap natnet://HOST:PORT``
+``python -m groundstation.runtime.workers.mocap --session ID --mocap natnet://HOST:PORT``
 
 Waits (XPUB ready handshake) for ``--wait-subscribers`` subscribers on its data topics, opens the
 socket, then publishes every datagram on ``raw.natnet`` (receive time as source and receive
@@ -25,8 +25,10 @@ from firmware_bridge.errors import BridgeError
 from firmware_bridge.frames import AxisConvention
 from firmware_bridge.link import Link, open_link
 from groundstation.acquisition.decoders import NatNetStreamDecoder
-from groundstation.acquisition.session import (
-    AcquisitionSettings,
+from groundstation.acquisition.settings import AcquisitionSettings
+from groundstation.bus.errors import BusTimeoutError
+from groundstation.bus.pubsub import Publisher
+from groundstation.runtime.session import (
     RateCounter,
     Session,
     StopSignals,
@@ -35,8 +37,6 @@ from groundstation.acquisition.session import (
     publish_log,
     session_from_args,
 )
-from groundstation.bus.errors import BusTimeoutError
-from groundstation.bus.pubsub import Publisher
 
 DATA_TOPICS = ("raw.natnet", "samples.pose")
 TOPICS = (*DATA_TOPICS, "status", "log")
@@ -148,7 +148,7 @@ class MocapProcess:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m groundstation.acquisition.mocap_process")
+    p = argparse.ArgumentParser(prog="python -m groundstation.runtime.workers.mocap")
     add_session_arguments(p)
     p.add_argument(
         "--mocap", required=True, help="natnet://239.255.42.99:1511 or natnet://HOST:PORT"

@@ -1,6 +1,6 @@
 """The recorder process: every topic of the session into one MCAP file.
 
-``python -m groundstation.acquisition.recorder_process --session ID --out LOG.mcap
+``python -m groundstation.runtime.workers.recorder --session ID --out LOG.mcap
 [--source URI ...] [--created-by TEXT]``
 
 Subscribes to every topic of every publisher of the session with ``recv_with_frames`` and writes
@@ -28,8 +28,10 @@ import zmq
 
 from groundstation.acquisition import layout
 from groundstation.acquisition.recorder import Recorder, RecordingError
-from groundstation.acquisition.session import (
-    AcquisitionSettings,
+from groundstation.acquisition.settings import AcquisitionSettings
+from groundstation.bus.envelope import Envelope, pack_frames
+from groundstation.bus.pubsub import Publisher, Subscriber
+from groundstation.runtime.session import (
     RateCounter,
     Session,
     StopSignals,
@@ -38,8 +40,6 @@ from groundstation.acquisition.session import (
     publish_log,
     session_from_args,
 )
-from groundstation.bus.envelope import Envelope, pack_frames
-from groundstation.bus.pubsub import Publisher, Subscriber
 
 _IDLE_FLUSH_NS = 1_000_000_000
 _DRAIN_IDLE_MS = 300
@@ -210,7 +210,7 @@ class RecorderProcess:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m groundstation.acquisition.recorder_process")
+    p = argparse.ArgumentParser(prog="python -m groundstation.runtime.workers.recorder")
     add_session_arguments(p)
     p.add_argument("--out", required=True, help="MCAP file to write")
     p.add_argument("--name", default="recorder", help="process name (its endpoint)")

@@ -3,17 +3,17 @@
 
 Each factory class answers for its schemes and raises :class:`NotMySchemeError` otherwise; the
 first that accepts wins (model: cflib ``crtp.get_link_driver``). A factory returns a
-:class:`~groundstation.supervisor.WorkerSpec` that runs the source's process in the session, so
-``groundstation record`` (and later ``live``/``replay``) only list URIs.
+:class:`~groundstation.runtime.supervisor.WorkerSpec` that runs the source's process in the
+session, so ``groundstation record`` (and later ``live``/``replay``) only list URIs.
 
-=============================  ========  ====================================================
-URI                            role      process
-=============================  ========  ====================================================
-``serial:///dev/ttyUSB0?...``  link      ``groundstation.acquisition.link_process``
-``udp://0.0.0.0:14550``        link      ``groundstation.acquisition.link_process``
-``natnet://239.255.42.99:1511``  mocap   ``groundstation.acquisition.mocap_process``
-``replay://flight.mcap?...``   replay    ``groundstation.acquisition.replay``
-=============================  ========  ====================================================
+=================================  ======  ========================================
+URI                                role    process
+=================================  ======  ========================================
+``serial:///dev/ttyUSB0?...``      link    ``groundstation.runtime.workers.link``
+``udp://0.0.0.0:14550``            link    ``groundstation.runtime.workers.link``
+``natnet://239.255.42.99:1511``    mocap   ``groundstation.runtime.workers.mocap``
+``replay://flight.mcap?...``       replay  ``groundstation.runtime.workers.replay``
+=================================  ======  ========================================
 
 ``replay://`` takes the path after ``//`` (``replay://flight.mcap`` is relative to the working
 directory, ``replay:///abs/flight.mcap`` absolute) and ``speed`` (``1`` default, a positive
@@ -28,8 +28,8 @@ from urllib.parse import parse_qsl, unquote, urlsplit
 
 from firmware_bridge.errors import UriError
 from firmware_bridge.link.base import parse_uri
-from groundstation.acquisition.session import Session
-from groundstation.supervisor import WorkerSpec, python_module
+from groundstation.runtime.session import Session
+from groundstation.runtime.supervisor import WorkerSpec, python_module
 
 REPLAY_EXAMPLE = "replay://flight.mcap?speed=max&start=10&end=70"
 
@@ -92,7 +92,7 @@ class LinkSource:
     """serial:// and udp:// firmware links -> the link process."""
 
     schemes = ("serial", "udp")
-    module = "groundstation.acquisition.link_process"
+    module = "groundstation.runtime.workers.link"
 
     @classmethod
     def worker(cls, uri: str, session: Session, name: str, extra: tuple[str, ...]) -> WorkerSpec:
@@ -107,7 +107,7 @@ class MocapSource:
     """natnet:// motion capture -> the mocap process."""
 
     schemes = ("natnet",)
-    module = "groundstation.acquisition.mocap_process"
+    module = "groundstation.runtime.workers.mocap"
 
     @classmethod
     def worker(cls, uri: str, session: Session, name: str, extra: tuple[str, ...]) -> WorkerSpec:
@@ -122,7 +122,7 @@ class ReplaySourceFactory:
     """replay:// recordings -> the replay process (runs once: not restarted)."""
 
     schemes = ("replay",)
-    module = "groundstation.acquisition.replay"
+    module = "groundstation.runtime.workers.replay"
 
     @classmethod
     def worker(cls, uri: str, session: Session, name: str, extra: tuple[str, ...]) -> WorkerSpec:

@@ -1,6 +1,6 @@
 """The pilot process: joystick device shell + pure commander at a fixed rate, on the session bus.
 
-``python -m groundstation.pilot.process --session ID --device /dev/input/js0 [--rate HZ]
+``python -m groundstation.runtime.workers.pilot --session ID --device /dev/input/js0 [--rate HZ]
 [--calibration FILE] [--wait-subscribers N] [--config FILE] [--set pilot.KEY=VALUE ...]``
 
 - :class:`~groundstation.pilot.jsdev.JoystickDevice` reads the device (or a FIFO) in its own
@@ -35,12 +35,6 @@ from collections.abc import Sequence
 import numpy as np
 import zmq
 
-from groundstation.acquisition.session import (
-    Session,
-    add_session_arguments,
-    publish_log,
-    session_from_args,
-)
 from groundstation.bus.errors import BusTimeoutError
 from groundstation.bus.pubsub import Publisher
 from groundstation.errors import ConfigError
@@ -49,6 +43,12 @@ from groundstation.pilot.commander import Commander, Tick
 from groundstation.pilot.jsdev import JoystickDevice
 from groundstation.pilot.loop import LoopStats, run_pilot_loop
 from groundstation.pilot.settings import PilotSettings
+from groundstation.runtime.session import (
+    Session,
+    add_session_arguments,
+    publish_log,
+    session_from_args,
+)
 
 TOPICS = ("pilot.command", "pilot.event", "raw.pilot", "status", "log")
 _STATUS_NS = 1_000_000_000
@@ -226,7 +226,7 @@ class PilotProcess:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m groundstation.pilot.process")
+    p = argparse.ArgumentParser(prog="python -m groundstation.runtime.workers.pilot")
     add_session_arguments(p)
     p.add_argument("--device", required=True, help="joystick: /dev/input/js0 (or a FIFO)")
     p.add_argument("--name", default="pilot", help="process name (its endpoint in the session)")

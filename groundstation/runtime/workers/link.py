@@ -1,6 +1,6 @@
 """The link process: the one owner of the firmware link (serial:// or udp://).
 
-``python -m groundstation.acquisition.link_process --session ID --link URI [--wait-subscribers N]``
+``python -m groundstation.runtime.workers.link --session ID --link URI [--wait-subscribers N]``
 
 - waits (XPUB ready handshake) until ``N`` subscribers hold its data topics, then opens the link;
 - publishes every chunk read on ``raw.mavlink`` (source and receive time = the read time), the
@@ -49,8 +49,10 @@ from firmware_bridge.mavlink.messages import (
     Timesync,
 )
 from groundstation.acquisition.decoders import MavlinkStreamDecoder
-from groundstation.acquisition.session import (
-    AcquisitionSettings,
+from groundstation.acquisition.settings import AcquisitionSettings
+from groundstation.bus.errors import BusTimeoutError
+from groundstation.bus.pubsub import Publisher, Subscriber
+from groundstation.runtime.session import (
     RateCounter,
     Session,
     StopSignals,
@@ -59,8 +61,6 @@ from groundstation.acquisition.session import (
     publish_log,
     session_from_args,
 )
-from groundstation.bus.errors import BusTimeoutError
-from groundstation.bus.pubsub import Publisher, Subscriber
 
 DATA_TOPICS = ("raw.mavlink", "samples.imu", "samples.attitude", "samples.pose")
 TOPICS = (*DATA_TOPICS, "link.health", "status", "log")
@@ -323,7 +323,7 @@ class LinkProcess:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m groundstation.acquisition.link_process")
+    p = argparse.ArgumentParser(prog="python -m groundstation.runtime.workers.link")
     add_session_arguments(p)
     p.add_argument("--link", required=True, help="serial:///dev/ttyUSB0?baud=921600 or udp://...")
     p.add_argument("--name", default="link", help="process name (its endpoint in the session)")

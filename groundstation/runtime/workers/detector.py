@@ -2,7 +2,7 @@
 
 Command line (started by the supervisor; ``groundstation live`` and ``replay --processes``)::
 
-    python -m groundstation.contact.process --session ID [--session-root /tmp]
+    python -m groundstation.runtime.workers.detector --session ID [--session-root /tmp]
         --publishers replay|link,mocap[,...]   # who publishes samples (subscribe endpoints)
         [--name detector] [--flow-from replay] [--wait-subscribers 1] [--first-id 0]
         [--config FILE] [--set contact.KEY=VALUE --set alignment.KEY=VALUE ...]
@@ -37,7 +37,11 @@ from collections.abc import Sequence
 import zmq
 
 from groundstation.acquisition.replay import FINISHED
-from groundstation.acquisition.session import (
+from groundstation.bus.errors import BusTimeoutError
+from groundstation.bus.pubsub import Publisher, Subscriber
+from groundstation.config import Config, load_config
+from groundstation.contact.stage import INPUT_TOPICS, ContactStage
+from groundstation.runtime.session import (
     RateCounter,
     Session,
     StopSignals,
@@ -45,10 +49,6 @@ from groundstation.acquisition.session import (
     publish_log,
     session_from_args,
 )
-from groundstation.bus.errors import BusTimeoutError
-from groundstation.bus.pubsub import Publisher, Subscriber
-from groundstation.config import Config, load_config
-from groundstation.contact.stage import INPUT_TOPICS, ContactStage
 
 TOPICS = ("observations", "contact.event", "status", "log")
 DETECTOR_FINISHED = "detector finished"
@@ -170,7 +170,7 @@ class DetectorProcess:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m groundstation.contact.process")
+    p = argparse.ArgumentParser(prog="python -m groundstation.runtime.workers.detector")
     add_session_arguments(p)
     p.add_argument("--name", default="detector", help="process name (its endpoint)")
     p.add_argument("--flow-from", default=None, help="publisher to take credit from (replay)")
