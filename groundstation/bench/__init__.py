@@ -1,5 +1,5 @@
 """Benchmarks: paper reproduction (``paper2d``), speed-vs-accuracy charts, stability sweeps.
 
-Each command module provides ``add_arguments(parser)`` and ``run(args) -> int``
-(see ``groundstation.cli``); the data generators and measures they use are pure.
+The commands' options and entries are in ``groundstation.cli.bench``; the data generators and
+measures here are pure.
 """

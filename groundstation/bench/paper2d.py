@@ -14,9 +14,7 @@ this process, also with 1 BLAS thread, so both give identical numbers.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import math
 import platform
 import sys
@@ -30,7 +28,6 @@ from typing import Any
 import numpy as np
 
 from groundstation.bench import shapes2d
-from groundstation.errors import ConfigError
 from groundstation.mapping.grid import Grid, evaluate_field
 from groundstation.mapping.metrics import (
     chamfer_distance,
@@ -423,56 +420,3 @@ def _versions() -> dict[str, str]:
     return {"python": platform.python_version(), "numpy": np.__version__,
             "scipy": scipy.__version__, "scikit-image": skimage.__version__,
             "groundstation": getattr(groundstation, "__version__", "0.1.0")}  # fmt: skip
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Command-line options of ``groundstation bench paper2d``."""
-    parser.add_argument(
-        "--seeds", type=int, default=None, help="runs per shape (default 50; 3 with --quick)"
-    )
-    parser.add_argument(
-        "--shapes",
-        default=",".join(shapes2d.SHAPES),
-        help="comma-separated subset of square,circle,cross",
-    )
-    parser.add_argument("--out", default="results/paper2d", help="output folder (created)")
-    parser.add_argument(
-        "--quick", action="store_true", help="3 seeds and a 0.04 m grid (about a minute)"
-    )
-    parser.add_argument(
-        "--prior-mean", type=float, default=0.0, help="GP prior mean mu0 (paper: 0)"
-    )
-    parser.add_argument("--jobs", type=int, default=2, help="worker processes (1 BLAS thread each)")
-
-
-def run(args: argparse.Namespace) -> int:
-    """Run the bench, print the tables, write summary.md, results.json and the figures."""
-    shapes = [x.strip() for x in args.shapes.split(",") if x.strip()]
-    for name in shapes:
-        shapes2d.make_shape(name)  # raises ConfigError naming a bad shape
-    seeds = args.seeds if args.seeds is not None else (3 if args.quick else 50)
-    if seeds < 1 or args.jobs < 1:
-        raise ConfigError(f"--seeds ({seeds}) and --jobs ({args.jobs}) must be >= 1")
-    if not math.isfinite(args.prior_mean):
-        raise ConfigError(f"--prior-mean must be a finite number, got {args.prior_mean}")
-    s = BenchSettings(spacing=0.04 if args.quick else 0.02, prior_mean=args.prior_mean)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    tasks = [(shape, seed, seed == 0) for shape in shapes for seed in range(seeds)]
-    t0 = time.perf_counter()
-    runs = _run_all(tasks, s, args.jobs)
-    wall = time.perf_counter() - t0
-    for r in runs:
-        if "fields" in r:
-            plot_shape(r, out / f"fig6_{r['shape']}.png", s)
-            del r["fields"]
-    table = summarize(runs)
-    text = render_summary(table, s, seeds) + f"\nWall time {wall:.1f} s with --jobs {args.jobs}.\n"
-    (out / "summary.md").write_text(text)
-    payload = {"settings": dataclasses.asdict(s), "seeds": seeds, "shapes": shapes,
-               "jobs": args.jobs, "wall_s": wall, "versions": _versions(),
-               "summary": table, "runs": runs}  # fmt: skip
-    (out / "results.json").write_text(json.dumps(payload, indent=1, allow_nan=False))
-    print(text)
-    print(f"wrote {out / 'summary.md'}, {out / 'results.json'} and {len(shapes)} figure(s)")
-    return 0

@@ -22,12 +22,9 @@ Methods whose module is missing (the speed core) are listed as skipped, never fa
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import math
 import os
-import sys
 import threading
 import time
 import warnings
@@ -38,7 +35,6 @@ from typing import Any
 import numpy as np
 
 from groundstation.bench import scenes3d, shapes2d
-from groundstation.errors import ConfigError
 from groundstation.mapping.grid import Grid, evaluate_field
 from groundstation.mapping.metrics import (
     chamfer_distance,
@@ -873,119 +869,7 @@ def plot_refits(refits: list[dict], covered_n: int | None, path: Path) -> None:
 # --------------------------------------------------------------------------- command
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Command-line options of ``groundstation bench pareto``."""
-    parser.add_argument("--out", default="results/pareto", help="output folder (created)")
-    parser.add_argument(
-        "--quick",
-        action="store_true",
-        help="CI size: circle only, n ~ 700 in 3D, coarse grids, 5-min session",
-    )
-    parser.add_argument(
-        "--scenes",
-        default="2d,paper3d,session40",
-        help="comma-separated subset of 2d, paper3d, session40",
-    )
-    parser.add_argument(
-        "--refit-every",
-        type=float,
-        default=None,
-        help="session refit interval, s (120; 60 with --quick)",
-    )
-    parser.add_argument("--seed", type=int, default=0, help="data seed")
-
-
-def run(args: argparse.Namespace) -> int:
-    """Run every point, print the tables, write the charts, pareto.md and results.json."""
-    from threadpoolctl import threadpool_limits
-    from tqdm import tqdm
-
-    scenes = [x.strip() for x in args.scenes.split(",") if x.strip()]
-    for sc in scenes:
-        if sc not in ("2d", "paper3d", "session40"):
-            raise ConfigError(f"unknown scene {sc!r}", hint="choose from 2d, paper3d, session40")
-    every = args.refit_every if args.refit_every is not None else (60.0 if args.quick else 120.0)
-    if not every > 0:
-        raise ConfigError(f"--refit-every must be > 0 s, got {every}")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    core = _core()
-    import scipy.linalg  # noqa: F401  (load every BLAS before limiting it)
-
-    import groundstation.mapping.robust  # noqa: F401
-
-    jobs: list[tuple[str, BenchScene, list[PointSpec]]] = []
-    if "2d" in scenes:
-        shapes = ("circle",) if args.quick else shapes2d.SHAPES
-        for sh in shapes:
-            jobs.append(("2d", scene_2d(sh, args.seed), method_specs(2, args.quick)))
-    if "paper3d" in scenes:
-        kw = dict(n_contacts=300, n_external=150) if args.quick else {}
-        jobs.append(
-            ("paper3d", scene_3d(scenes3d.paper3d(args.seed, **kw)), method_specs(3, args.quick))
-        )
-    session = None
-    if "session40" in scenes:
-        session = scenes3d.session40(args.seed, duration_s=300.0 if args.quick else 2400.0)
-    n_refits = 0 if session is None else int(math.ceil(session.t_ns[-1] * 1e-9 / every))
-    total = sum(len(s) for _, _, s in jobs) + (n_refits if core else 0)
-    points: dict[str, list[dict]] = {}
-    refits: list[dict] = []
-    t0 = time.perf_counter()
-    with (
-        threadpool_limits(limits=1),
-        tqdm(total=total, file=sys.stderr, desc="pareto", unit="point") as bar,
-    ):
-        for group, scene, specs in jobs:
-            points.setdefault(group, []).extend(run_scene(scene, specs, core, bar))
-        if session is not None:
-            refits = refit_session(session, every, core, bar)
-    wall = time.perf_counter() - t0
-    groups = {g: aggregate(p, g) for g, p in points.items()}
-    rat = {g: ratios(rows) for g, rows in groups.items()}
-    rr = refit_ratio(refits)
-    note = (
-        f"Setting: {'--quick' if args.quick else 'full'}; seed {args.seed}; one process, BLAS "
-        "limited to 1 thread (threadpoolctl). 2D rows average the paper's shapes "
-        f"({'circle' if args.quick else 'square, circle, cross'}; n ~ 590). Times in seconds: "
-        "merge+fit, field (dense grid or narrow band), mesh (marching cubes / squares). Chamfer "
-        "and e against the true surface (mm): 'near data' counts only surface inside the contacts' "
-        "bounding box + 0.5 m (far from all data the mean reverts to the prior mean 0 = the "
-        "surface level, and every method draws phantom surface there); Q over the planted "
-        "false contacts; Pareto: not dominated in (total s, Chamfer near data). 'default' is "
-        "SurfaceModel with default settings: its own mesh() (grid spacing max(0.05 m, l/5) over "
-        "the contacts' box + 0.5 m, narrow band, std at the vertices). sklearn GPR: "
-        "C x RBF + White, one L-BFGS start, mean predicted in chunks on the same grid. "
-        "Skipped: methods whose module is missing."
-    )
-    meta = {"note": note}
-    text = render(groups, rat, rr, meta) + f"\nWall time {wall:.0f} s.\n"
-    (out / "pareto.md").write_text(text)
-    if groups:
-        plot_pareto(groups, out / "pareto.png")
-    if refits:
-        plot_refits(refits, rr.get("covered_n_raw"), out / "refit_vs_session.png")
-    payload = {
-        "quick": bool(args.quick),
-        "seed": args.seed,
-        "wall_s": wall,
-        "speed_core": core is not None,
-        "groups": groups,
-        "points": points,
-        "ratios": rat,
-        "refits": refits,
-        "refit_ratio": rr,
-        "session_covered_s": None if session is None else session.covered_s,
-    }
-    (out / "results.json").write_text(
-        json.dumps(payload, indent=1, allow_nan=False, default=_json_default)
-    )
-    print(text)
-    print(f"wrote {out}/pareto.md, pareto.png, refit_vs_session.png, results.json")
-    return 0
-
-
-def _json_default(x: Any) -> Any:
+def json_default(x: Any) -> Any:
     if isinstance(x, np.integer | np.floating | np.bool_):
         return x.item()
     if isinstance(x, float) and not math.isfinite(x):

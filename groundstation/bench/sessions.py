@@ -29,14 +29,11 @@ Pooled metrics per variant
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import math
 import subprocess
 import sys
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -225,86 +222,3 @@ def summary_markdown(results: dict[str, dict]) -> str:
                 f"| {_fmt(r['refit_s_median'], '.2f')} |"
             )
     return "\n".join(lines) + "\n"
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--logs", nargs="*", default=None, help="recordings (default: suite)")
-    parser.add_argument(
-        "--quick", action="store_true", help="only the three bundled replay_logs/ sessions"
-    )
-    parser.add_argument(
-        "--variant",
-        action="append",
-        default=[],
-        metavar="NAME[:KEY=V,...]",
-        help="a setting variant to compare (repeatable; default: 'default' with no overrides)",
-    )
-    parser.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="applies to all variants"
-    )
-    parser.add_argument("--cache", default="results/sessions/logs", help="generated sessions")
-    parser.add_argument("--out", default="results/sessions", help="summary.md and summary.json")
-    parser.add_argument("--jobs", type=int, default=2, help="sessions replayed in parallel")
-
-
-def run(args: argparse.Namespace) -> int:
-    from groundstation.config import load_config
-
-    variants = [Variant.parse(v) for v in args.variant] or [Variant("default")]
-    if len({v.name for v in variants}) != len(variants):
-        raise ConfigError("--variant names must be unique")
-    for v in variants:
-        load_config(None, [*args.set, *v.overrides])  # fail before any work
-    if args.logs:
-        logs = [str(Path(p)) for p in args.logs]
-        missing = [p for p in logs if not Path(p).is_file()]
-        if missing:
-            raise InputDataError(f"recordings not found: {', '.join(missing)}")
-    else:
-        logs = [str(ROOT / "replay_logs" / f"{n}.mcap") for n in BUNDLED]
-        if not args.quick:
-            for spec in SUITE:
-                print(f"bench sessions: session {spec.name}", file=sys.stderr, flush=True)
-                logs.append(str(generate(spec, Path(args.cache))))
-    jobs = max(1, int(args.jobs))
-    results: dict[str, dict] = {}
-    for v in variants:
-        overrides = [*args.set, *v.overrides]
-        print(f"bench sessions: variant {v.name} on {len(logs)} sessions", file=sys.stderr)
-        with ProcessPoolExecutor(jobs) as ex:
-            reports = list(ex.map(evaluate_log, logs, [overrides] * len(logs)))
-        results[v.name] = {
-            "overrides": overrides,
-            "pooled": pool(reports),
-            "sessions": {
-                Path(lg).stem: {
-                    k: r.get(k)
-                    for k in (
-                        "chamfer_m",
-                        "chamfer_full_m",
-                        "shape_error_m",
-                        "events_false",
-                        "events_flagged",
-                        "events_flagged_false",
-                        "fp_precision",
-                        "fp_recall",
-                        "detection_recall",
-                        "refits",
-                        "refit_s_median",
-                        "contacts",
-                        "observations",
-                    )
-                }
-                for lg, r in zip(logs, reports, strict=True)
-            },  # fmt: skip
-        }
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    text = summary_markdown(results)
-    (out / "summary.md").write_text(text)
-    from groundstation.pipeline.outputs import _clean
-
-    (out / "summary.json").write_text(json.dumps(_clean(results), indent=1) + "\n")
-    print(text)
-    print(f"bench sessions: wrote {out / 'summary.md'} and summary.json", file=sys.stderr)
-    return 0

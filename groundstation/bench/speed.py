@@ -18,11 +18,8 @@ the exact 3D fit and the exact std prediction (minutes each) and shrinks the 3D 
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 import warnings
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -112,24 +109,3 @@ def table(rows: list[dict]) -> str:
             f"| {r['what']} | {r['n']:,} | {r['seconds']:.2f} | {r['peak_mb']:.0f} | {r['note']} |"
         )
     return "\n".join(lines) + "\n"
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default="results/speed", help="output folder (created)")
-    parser.add_argument("--quick", action="store_true", help="no exact 3D fit, n ~ 750 in 3D")
-    parser.add_argument("--chunk-mb", type=float, default=64.0, help="prediction chunk budget")
-
-
-def run(args: argparse.Namespace) -> int:
-    import scipy.linalg  # noqa: F401  (load scipy's BLAS before limiting it)
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(1):
-        rows = measure(args.quick, args.chunk_mb)
-    text = "# bench speed (one process, one BLAS thread)\n\n" + table(rows)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "speed.md").write_text(text)
-    (out / "speed.json").write_text(json.dumps(rows, indent=1) + "\n")
-    print(text)
-    return 0

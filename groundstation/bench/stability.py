@@ -26,9 +26,7 @@ Outputs in ``--out``: ``stability.md``, ``stability.png``, ``results.json``.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import math
 import os
 import sys
@@ -42,7 +40,6 @@ from typing import Any
 import numpy as np
 
 from groundstation.bench import shapes2d
-from groundstation.errors import ConfigError
 from groundstation.mapping.diagnostics import diagnose
 from groundstation.mapping.grid import Grid, evaluate_field
 from groundstation.mapping.metrics import (
@@ -495,61 +492,3 @@ def plot(runs: list[dict], values: dict[str, tuple], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=60)
     plt.close(fig)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Command-line options of ``groundstation bench stability``."""
-    parser.add_argument("--out", default="results/stability", help="output folder (created)")
-    parser.add_argument("--seeds", type=int, default=None, help="seeds per value (5; 2 --quick)")
-    parser.add_argument("--sweeps", default=",".join(SWEEPS), help="comma-separated subset")
-    parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset")
-    parser.add_argument("--quick", action="store_true", help="2 seeds, 2-3 values, 0.05 m grid")
-    parser.add_argument("--jobs", type=int, default=2, help="worker processes (1 BLAS thread each)")
-
-
-def run(args: argparse.Namespace) -> int:
-    """Run the sweeps, write stability.md, stability.png and results.json."""
-    sweeps = [x.strip() for x in args.sweeps.split(",") if x.strip()]
-    methods = [x.strip() for x in args.methods.split(",") if x.strip()]
-    for sw in sweeps:
-        if sw not in SWEEPS:
-            raise ConfigError(f"unknown sweep {sw!r}", hint=f"choose from {', '.join(SWEEPS)}")
-    for m in methods:
-        if m not in METHODS:
-            raise ConfigError(f"unknown method {m!r}", hint=f"choose from {', '.join(METHODS)}")
-    seeds = args.seeds if args.seeds is not None else (2 if args.quick else 5)
-    if seeds < 1 or args.jobs < 1:
-        raise ConfigError(f"--seeds ({seeds}) and --jobs ({args.jobs}) must be >= 1")
-    s = StabilitySettings(spacing=0.05 if args.quick else 0.02)
-    values = {sw: SWEEPS[sw][1 if args.quick else 0] for sw in sweeps}
-    tasks = [
-        (m, sw, v, seed)
-        for sw in sweeps
-        for m in methods
-        for v in values[sw]
-        for seed in range(seeds)
-    ]
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    runs = run_all(tasks, s, args.jobs)
-    wall = time.perf_counter() - t0
-    summary = summarize(runs, values)
-    setting = "--quick" if args.quick else "full"
-    text = render(summary, seeds, s, setting) + f"\nWall time {wall:.0f} s, --jobs {args.jobs}.\n"
-    (out / "stability.md").write_text(text)
-    plot(runs, values, out / "stability.png")
-    payload = {
-        "settings": dataclasses.asdict(s),
-        "seeds": seeds,
-        "values": values,
-        "chamfer_fail": CHAMFER_FAIL,
-        "q_fail": Q_FAIL,
-        "wall_s": wall,
-        "summary": summary,
-        "runs": runs,
-    }
-    (out / "results.json").write_text(json.dumps(payload, indent=1, allow_nan=False))
-    print(text)
-    print(f"wrote {out / 'stability.md'}, {out / 'stability.png'}, {out / 'results.json'}")
-    return 0

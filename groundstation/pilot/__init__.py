@@ -4,7 +4,7 @@ wins) -> watchdog -> MANUAL_CONTROL at a fixed rate (STYLE.md item 16).
 Pure core: :mod:`.settings`, :mod:`.calibration` (maths; its store is thin file I/O),
 :mod:`.shaping`, :mod:`.watchdog`, :mod:`.mux`, :mod:`.commander`, :mod:`.jsevent` (js_event
 codec). Shells: :mod:`.jsdev` (Linux joystick reader thread), :mod:`.loop` (fixed-rate tick
-loop), :mod:`.calibrate_cli` (``groundstation joystick calibrate``).
+loop); ``groundstation joystick calibrate`` is in ``groundstation.cli.calibrate``.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from groundstation.acquisition.reader import open_recording
-from groundstation.live_cli import DETECTOR_MODULE, MAPPER_MODULE, _available
+from groundstation.cli.live import DETECTOR_MODULE, MAPPER_MODULE, _available
 from tests.integration.test_pilot_sitl import free_udp_port, start, stop, wait_for
 
 LIVE_S = 15  # status lines (~seconds) to wait for before SIGINT

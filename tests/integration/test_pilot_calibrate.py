@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from groundstation.pilot.calibrate_cli import deflection, extremes, pick_axis
+from groundstation.cli.calibrate import deflection, extremes, pick_axis
 from groundstation.pilot.calibration import load_calibrations
 from groundstation.pilot.commander import Commander, InputSnapshot
 from groundstation.pilot.jsdev import JS_EVENT_AXIS, JsEvent, encode_events

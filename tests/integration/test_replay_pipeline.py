@@ -37,11 +37,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from groundstation.cli.replay import REPORT_SUMMARY_KEYS
 from groundstation.config import load_config
 from groundstation.pipeline.multiprocess import run_multiprocess
 from groundstation.pipeline.offline import event_key, run_offline
 from groundstation.pipeline.outputs import build_report
-from groundstation.replay_cli import REPORT_SUMMARY_KEYS
 
 ROOT = Path(__file__).resolve().parents[2]
 NAMES = ("wall_survey", "pillar_survey", "wall_slow_touch_gusts")

@@ -24,13 +24,12 @@ def test_group_without_subcommand_lists_choices(capsys):
 
 def test_every_registered_module_imports_and_builds_its_parser():
     import argparse
-    import importlib
 
-    for path, (module_name, _) in cli.COMMANDS.items():
-        module = importlib.import_module(module_name)
+    for path in cli.COMMANDS:
+        add_arguments, run = cli.load(path)
         parser = argparse.ArgumentParser(prog=" ".join(path))
-        module.add_arguments(parser)
-        assert callable(module.run)
+        add_arguments(parser)
+        assert callable(run)
 
 
 def test_config_error_is_reported_not_raised(capsys):

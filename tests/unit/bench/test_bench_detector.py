@@ -9,7 +9,6 @@ import math
 import numpy as np
 import pytest
 
-from groundstation.bench import detector as bd
 from groundstation.bench.detector import (
     BenchDataError,
     Detection,
@@ -25,6 +24,7 @@ from groundstation.bench.detector import (
     recommend,
     sweep,
 )
+from groundstation.cli import bench as cli_bench
 from groundstation.contact import ContactSettings, G, earth_acceleration
 
 NAN3 = np.full(3, np.nan)
@@ -230,7 +230,7 @@ def test_recommend_reports_a_worse_default_with_numbers():
 
 def _args(tmp_path, **kw):
     p = argparse.ArgumentParser()
-    bd.add_arguments(p)
+    cli_bench.add_detector_arguments(p)
     argv = ["--out", str(tmp_path / "out")]
     for k, v in kw.items():
         argv += [f"--{k.replace('_', '-')}"] + ([] if v is True else [str(v)])
@@ -256,7 +256,7 @@ def test_run_without_real_flights_writes_outputs(tmp_path, capsys):
         filters="moving_average",
         thresholds="1.2",
     )
-    assert bd.run(args) == 0
+    assert cli_bench.run_detector(args) == 0
     res = _results(tmp_path)
     assert "real flights skipped" in capsys.readouterr().err
     (pt,) = [p for p in res["points"] if p["default"]]  # the default (1.2 G) is always added
@@ -268,7 +268,7 @@ def test_run_without_real_flights_writes_outputs(tmp_path, capsys):
 def test_missing_external_data_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setenv("GS_EXTERNAL_DATA", str(tmp_path / "nowhere"))
     with pytest.raises(BenchDataError, match="nowhere") as exc:
-        bd.run(_args(tmp_path, quick=True))
+        cli_bench.run_detector(_args(tmp_path, quick=True))
     assert "GS_EXTERNAL_DATA" in exc.value.hint
 
 
@@ -278,7 +278,7 @@ def test_quick_run_on_a_real_flight(external_data, tmp_path, monkeypatch, capsys
     args = _args(
         tmp_path, quick=True, pilots="survey", filters="moving_average", thresholds="0.6,1.2"
     )
-    assert bd.run(args) == 0
+    assert cli_bench.run_detector(args) == 0
     res = _results(tmp_path)
     assert "Hurwitz and Klein" in capsys.readouterr().out
     by = {p["threshold_g"]: p for p in res["points"]}

@@ -11,6 +11,7 @@ import pytest
 
 from groundstation.bench import paper2d
 from groundstation.bench.paper2d import BenchSettings, run_one
+from groundstation.cli import bench as cli_bench
 from groundstation.errors import ConfigError
 
 # The protocol's data (n ~ 590, 2 % outlier pairs) on the --quick grid (0.04 m).
@@ -66,7 +67,7 @@ def test_process_pool_gives_the_same_numbers_as_one_process():
 
 def _args(tmp_path, **kw) -> argparse.Namespace:
     parser = argparse.ArgumentParser()
-    paper2d.add_arguments(parser)
+    cli_bench.add_paper2d_arguments(parser)
     argv = ["--out", str(tmp_path)]
     for k, v in kw.items():
         argv += [f"--{k.replace('_', '-')}"] + ([] if v is True else [str(v)])
@@ -76,7 +77,7 @@ def _args(tmp_path, **kw) -> argparse.Namespace:
 @pytest.mark.timeout(180)
 def test_run_writes_summary_results_and_figure(tmp_path, capsys):
     args = _args(tmp_path, seeds=1, shapes="circle", quick=True, jobs=1)
-    assert paper2d.run(args) == 0
+    assert cli_bench.run_paper2d(args) == 0
     summary = (tmp_path / "summary.md").read_text()
     assert "| circle |" in summary and "Table II" in summary and "Table III" in summary
     results = json.loads((tmp_path / "results.json").read_text())
@@ -93,6 +94,6 @@ def test_run_writes_summary_results_and_figure(tmp_path, capsys):
 
 def test_run_rejects_unknown_shape_and_bad_counts(tmp_path):
     with pytest.raises(ConfigError, match="hexagon"):
-        paper2d.run(_args(tmp_path, shapes="circle,hexagon"))
+        cli_bench.run_paper2d(_args(tmp_path, shapes="circle,hexagon"))
     with pytest.raises(ConfigError, match="--seeds"):
-        paper2d.run(_args(tmp_path, seeds=0))
+        cli_bench.run_paper2d(_args(tmp_path, seeds=0))

@@ -11,6 +11,7 @@ import pytest
 from tqdm import tqdm
 
 from groundstation.bench import pareto, scenes3d
+from groundstation.cli import bench as cli_bench
 from groundstation.errors import ConfigError
 
 
@@ -95,7 +96,7 @@ def test_run_scene_measures_every_point_and_shares_fits():
     assert points[0]["chamfer"] < 0.03 and points[0]["Q"] < 0.2
     rows = pareto.aggregate(points, "2d")
     assert any(r["pareto"] for r in rows)
-    json.dumps(points, default=pareto._json_default, allow_nan=False)
+    json.dumps(points, default=pareto.json_default, allow_nan=False)
 
 
 @pytest.mark.timeout(120)
@@ -142,7 +143,7 @@ def test_render_and_charts_from_measured_points(tmp_path):
 @pytest.mark.timeout(600)
 def test_cli_2d_quick_writes_the_outputs(tmp_path):
     args = argparse.Namespace(out=str(tmp_path), quick=True, scenes="2d", refit_every=None, seed=0)
-    assert pareto.run(args) == 0
+    assert cli_bench.run_pareto(args) == 0
     for name in ("pareto.png", "pareto.md", "results.json"):
         assert (tmp_path / name).stat().st_size > 0
     res = json.loads((tmp_path / "results.json").read_text())
@@ -157,7 +158,7 @@ def test_cli_refuses_unknown_scenes(tmp_path):
     args = argparse.Namespace(out=str(tmp_path), quick=True, scenes="moon", refit_every=None,
                               seed=0)  # fmt: skip
     with pytest.raises(ConfigError, match="moon"):
-        pareto.run(args)
+        cli_bench.run_pareto(args)
 
 
 @pytest.mark.soak
@@ -165,5 +166,5 @@ def test_cli_refuses_unknown_scenes(tmp_path):
 def test_cli_quick_all_scenes(tmp_path):
     args = argparse.Namespace(out=str(tmp_path), quick=True, scenes="2d,paper3d,session40",
                               refit_every=None, seed=0)  # fmt: skip
-    assert pareto.run(args) == 0
+    assert cli_bench.run_pareto(args) == 0
     assert (tmp_path / "refit_vs_session.png").stat().st_size > 0

@@ -10,6 +10,7 @@ import pytest
 
 from groundstation.bench import shapes2d, stability
 from groundstation.bench.stability import StabilitySettings
+from groundstation.cli import bench as cli_bench
 from groundstation.errors import ConfigError
 
 S = StabilitySettings(spacing=0.1)
@@ -100,7 +101,7 @@ def test_breakdown_is_the_first_value_where_half_the_seeds_fail():
 def test_cli_writes_table_chart_and_json(tmp_path):
     args = argparse.Namespace(out=str(tmp_path), seeds=1, sweeps="max_iter", methods="gpis",
                               quick=True, jobs=1)  # fmt: skip
-    assert stability.run(args) == 0
+    assert cli_bench.run_stability(args) == 0
     res = json.loads((tmp_path / "results.json").read_text())
     assert len(res["runs"]) == 2 and (tmp_path / "stability.png").stat().st_size > 0
     assert "max_iter" in (tmp_path / "stability.md").read_text()
@@ -110,7 +111,7 @@ def test_cli_refuses_unknown_sweeps(tmp_path):
     args = argparse.Namespace(out=str(tmp_path), seeds=1, sweeps="wind", methods="gpis",
                               quick=True, jobs=1)  # fmt: skip
     with pytest.raises(ConfigError, match="wind"):
-        stability.run(args)
+        cli_bench.run_stability(args)
 
 
 @pytest.mark.soak
@@ -118,4 +119,4 @@ def test_cli_refuses_unknown_sweeps(tmp_path):
 def test_cli_quick_every_sweep(tmp_path):
     args = argparse.Namespace(out=str(tmp_path), seeds=None, sweeps=",".join(stability.SWEEPS),
                               methods=",".join(stability.METHODS), quick=True, jobs=2)  # fmt: skip
-    assert stability.run(args) == 0
+    assert cli_bench.run_stability(args) == 0

@@ -7,13 +7,13 @@ import argparse
 import pytest
 
 from groundstation.cli import main
+from groundstation.cli import view as view_cli
 from groundstation.errors import ConfigError
-from groundstation.viewer import view_cli
 
 
 def _args(*argv: str) -> argparse.Namespace:
     p = argparse.ArgumentParser()
-    view_cli.add_arguments(p)
+    view_cli.add_view_arguments(p)
     return p.parse_args(list(argv))
 
 

@@ -37,7 +37,7 @@ def _speed(text: str) -> float:
     return v
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", help="recording (.mcap; SITL, live or imported)")
     parser.add_argument("--speed", type=_speed, default=math.inf, help="max (default) or X")
     parser.add_argument("--out", default=None, help="output folder (default: no files)")
@@ -70,7 +70,7 @@ def _progress_offline(quiet: bool):
     return show
 
 
-def run(args: argparse.Namespace) -> int:
+def run_replay(args: argparse.Namespace) -> int:
     from groundstation.config import load_config
 
     log = Path(args.log)

@@ -50,12 +50,11 @@ MONITOR_TOPICS = (
 )  # fmt: skip
 DETECTOR_MODULE = "groundstation.runtime.workers.detector"
 MAPPER_MODULE = "groundstation.runtime.workers.mapper"
-VIEWER_MODULE = "groundstation.viewer.view_cli"
 PILOT_MODULE = "groundstation.runtime.workers.pilot"
 _DRAIN_MS = 300
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def add_live_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``groundstation live``."""
     parser.add_argument("--link", required=True, help="firmware link: serial://... or udp://...")
     parser.add_argument("--mocap", default=None, help="mocap: natnet://239.255.42.99:1511")
@@ -161,7 +160,8 @@ def plan(args: argparse.Namespace, session_id: str) -> tuple[Session, list[Worke
             WorkerSpec(
                 "viewer",
                 python_module(
-                    VIEWER_MODULE,
+                    "groundstation.cli",
+                    "view",
                     "--session",
                     session.session_id,
                     "--session-root",
@@ -180,7 +180,7 @@ def _err(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def run(args: argparse.Namespace) -> int:
+def run_live(args: argparse.Namespace) -> int:
     """Run the live session until Ctrl-C / SIGTERM / ``--duration``; 0 when it ended cleanly
     and the recording (if any) is complete."""
     _check_config(args)
@@ -265,18 +265,3 @@ def _check_recording(path: str) -> dict:
     counts = ", ".join(f"{k} {v}" for k, v in sorted(out["topic_counts"].items()))
     _err(f"recorded {path}: {out['duration_s']:.1f} s, {counts}")
     return out
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m groundstation.live_cli ...`` (same as ``groundstation live``)."""
-    parser = argparse.ArgumentParser(prog="groundstation live", description=__doc__)
-    add_arguments(parser)
-    try:
-        return run(parser.parse_args(argv))
-    except GroundstationError as exc:
-        _err(f"error: {exc.message}")
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

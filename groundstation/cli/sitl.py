@@ -47,7 +47,7 @@ def _speed(text: str) -> float:
     return value
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def add_sitl_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``groundstation sitl``."""
     parser.add_argument(
         "--scene", default="paper", help=f"named scene ({', '.join(named_scenes())}) or a JSON file"
@@ -174,7 +174,7 @@ class CommandLog:
         self.fh.close()
 
 
-def run(args: argparse.Namespace) -> int:
+def run_sitl(args: argparse.Namespace) -> int:
     """Run the SITL until ``--duration``, the end of a script, SIGINT or SIGTERM."""
     try:
         return _run(args)

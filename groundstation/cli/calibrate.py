@@ -80,7 +80,7 @@ def pick_axis(
     return None if best is None else (best[1], best[2])
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def add_joystick_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="/dev/input/js0", help="joystick device or FIFO")
     parser.add_argument(
         "--out", default=DEFAULT_CALIBRATION_PATH, help="calibration store (TOML, per device name)"
@@ -186,7 +186,9 @@ def calibrate(
     return DeviceCalibration(snap.name, axes, roles)
 
 
-def run(args: argparse.Namespace, stdin: TextIO | None = None, stdout: TextIO | None = None) -> int:
+def run_joystick_calibrate(
+    args: argparse.Namespace, stdin: TextIO | None = None, stdout: TextIO | None = None
+) -> int:
     stdin = stdin or sys.stdin
     stdout = stdout or sys.stdout
     device = JoystickDevice(args.device, name=args.name)

@@ -32,7 +32,7 @@ _SHORT = {
 }
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def add_record_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``groundstation record``."""
     parser.add_argument("--link", required=True, help="firmware link: serial://... or udp://...")
     parser.add_argument("--mocap", default=None, help="mocap: natnet://239.255.42.99:1511")
@@ -70,7 +70,7 @@ def status_line(t_s: float, status: dict[str, dict], alive: dict[str, bool]) -> 
     return "  ".join(parts)
 
 
-def run(args: argparse.Namespace) -> int:
+def run_record(args: argparse.Namespace) -> int:
     """Record until ``--duration`` or Ctrl-C; returns 0 when the file is complete."""
     load_settings(args.config, args.set)  # fail here, not in three workers
     names = ("recorder", "link", "mocap") if args.mocap else ("recorder", "link")
@@ -130,18 +130,3 @@ def run(args: argparse.Namespace) -> int:
     counts = ", ".join(f"{k} {v}" for k, v in sorted(summary.topic_counts.items()))
     print(f"recorded {args.out}: {summary.duration_s:.1f} s, {counts}", flush=True)
     return 0 if complete else 1
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m groundstation.acquisition.record_cli ...`` (same as ``groundstation record``)."""
-    parser = argparse.ArgumentParser(prog="groundstation record", description=__doc__)
-    add_arguments(parser)
-    try:
-        return run(parser.parse_args(argv))
-    except GroundstationError as exc:
-        print(f"error: {exc.message}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

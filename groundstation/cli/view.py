@@ -24,7 +24,7 @@ def _stderr(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def add_view_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_argument_group("where to listen (one of)")
     src.add_argument(
         "--connect",
@@ -119,7 +119,7 @@ def _make_sink(args: argparse.Namespace):
     )
 
 
-def run(args: argparse.Namespace) -> int:
+def run_view(args: argparse.Namespace) -> int:
     import signal
 
     from groundstation.bus.security import check_endpoint
@@ -159,9 +159,3 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(s, handler)
     _stderr(proc.summary())
     return status
-
-
-if __name__ == "__main__":
-    from groundstation.cli import main
-
-    raise SystemExit(main(["view", *sys.argv[1:]]))

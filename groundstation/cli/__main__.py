@@ -1,0 +1,5 @@
+"""``python -m groundstation.cli ...`` = ``groundstation ...``."""
+
+from groundstation.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,97 @@
+"""``groundstation import csv|ulog|tlog`` and ``groundstation export tlog``: outside recordings
+into the station's MCAP layout, and a recording's MAVLink back out.
+
+- ``groundstation import csv SRC --out LOG.mcap``: IMU CSV (aggressive_flight layout) -> MCAP.
+- ``groundstation import ulog SRC --out LOG.mcap``: PX4 ULog -> MCAP.
+- ``groundstation import tlog SRC --out LOG.mcap``: MAVLink telemetry log -> MCAP.
+- ``groundstation export tlog LOG.mcap --out FILE.tlog``: a recording's MAVLink -> tlog.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_import_csv_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("src", help="IMU CSV file (time, Euler_X/Y/Z, Acc_X/Y/Z, Gyr_X/Y/Z)")
+    parser.add_argument("--out", required=True, help="output recording (.mcap)")
+    parser.add_argument(
+        "--gt", default=None, help="ground-truth CSV (default: GT.csv beside SRC, if present)"
+    )
+    parser.add_argument(
+        "--pose",
+        choices=("natnet", "mavlink"),
+        default="natnet",
+        help="encode positions as NatNet 4.1 frames (default) or MAVLink ATT_POS_MOCAP",
+    )
+
+
+def run_import_csv(args: argparse.Namespace) -> int:
+    from groundstation.acquisition.importers.csv_imu import import_csv
+
+    report = import_csv(
+        args.src,
+        args.out,
+        gt_path=args.gt,
+        pose_transport=args.pose,
+        created_by=f"groundstation import csv {args.src} --out {args.out}",
+    )
+    print(report.describe())
+    return 0
+
+
+def add_import_ulog_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("src", help="PX4 ULog file (.ulg)")
+    parser.add_argument("--out", required=True, help="output recording (.mcap)")
+    parser.add_argument(
+        "--pose",
+        choices=("natnet", "mavlink"),
+        default="natnet",
+        help="encode positions as NatNet 4.1 frames (default) or MAVLink ATT_POS_MOCAP",
+    )
+
+
+def run_import_ulog(args: argparse.Namespace) -> int:
+    from groundstation.acquisition.importers.ulog import import_ulog
+
+    report = import_ulog(
+        args.src,
+        args.out,
+        pose_transport=args.pose,
+        created_by=f"groundstation import ulog {args.src} --out {args.out}",
+    )
+    print(report.describe())
+    return 0
+
+
+def add_import_tlog_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("src", help="MAVLink telemetry log (.tlog)")
+    parser.add_argument("--out", required=True, help="output recording (.mcap)")
+
+
+def run_import_tlog(args: argparse.Namespace) -> int:
+    from groundstation.acquisition.importers.tlog import import_tlog
+
+    report = import_tlog(
+        args.src, args.out, created_by=f"groundstation import tlog {args.src} --out {args.out}"
+    )
+    print(report.describe())
+    return 0
+
+
+def add_export_tlog_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("src", help="recording (.mcap)")
+    parser.add_argument("--out", required=True, help="output telemetry log (.tlog)")
+    parser.add_argument(
+        "--no-mocap",
+        action="store_true",
+        help="do not convert NatNet poses to ATT_POS_MOCAP frames",
+    )
+
+
+def run_export_tlog(args: argparse.Namespace) -> int:
+    from groundstation.acquisition.importers.export_tlog import export_tlog
+
+    report = export_tlog(args.src, args.out, natnet_as_mocap=not args.no_mocap)
+    print(report.describe())
+    return 0
