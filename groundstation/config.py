@@ -16,6 +16,7 @@ from typing import Any
 
 from groundstation.acquisition.settings import AcquisitionSettings
 from groundstation.contact.settings import AlignmentSettings, ContactSettings
+from groundstation.contact.vehicle import VehicleSettings
 from groundstation.errors import ConfigError
 from groundstation.mapping.settings import MapperSettings, MappingSettings, SurfaceSettings
 from groundstation.pilot.settings import PilotSettings
@@ -27,6 +28,7 @@ class Config:
 
     acquisition: AcquisitionSettings = AcquisitionSettings()
     contact: ContactSettings = ContactSettings()
+    vehicle: VehicleSettings = VehicleSettings()
     alignment: AlignmentSettings = AlignmentSettings()
     mapping: MappingSettings = MappingSettings()
     mapper: MapperSettings = MapperSettings()

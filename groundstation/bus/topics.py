@@ -211,18 +211,29 @@ _TABLE = [
        "lost_frames (MAVLink sequence gaps), garbage_bytes, the TIMESYNC offset "
        "(vehicle - station, ns) and RTT, and message rates (Hz) over the last window."),
     _t("contact.event", "contact_event", 1, "detector", "lossless", "event",
-       {"id": Field("int"), "state": Field("str", choices=("begin", "end")),
-        "peak_g": Field("float")},
+       {"id": Field("int"), "state": Field("str", choices=("begin", "end", "rejected")),
+        "peak_g": Field("float"), "p_false": Field("float", optional=True),
+        "dv_mps": Field("float", optional=True), "rebound": Field("bool", optional=True),
+        "features": Field("dict", optional=True)},
        {"position_m": _VEC3, "normal": _VEC3},
-       "A contact began or ended: drone position (m, world), outward unit normal, peak |a| in G."),
+       "A contact began or ended: drone position (m, world) at its onset, outward unit normal, "
+       "peak in G. The impulse detector sends begin and end together once it has decided, "
+       "with p_false (probability from the physics that the event is not a contact), dv_mps "
+       "(impulse per unit mass along the normal), rebound and the named evidence features; "
+       "state 'rejected': a candidate too likely false to make observations."),
     _t("observations", "observation", 2, "detector", "lossless", "data",
        {"id": Field("int"), "label": Field("int", choices=(-1, 0, 1)),
-        "event_id": Field("int", optional=True), "accel_g": Field("float", optional=True)},
+        "event_id": Field("int", optional=True), "accel_g": Field("float", optional=True),
+        "p_false": Field("float", optional=True),
+        "dv_mps": Field("float", optional=True, nullable=True),
+        "rebound": Field("bool", optional=True),
+        "sigma_m": Field("float", optional=True, nullable=True)},
        {"x_m": _VEC3, "normal": _VEC3},
        "One GPIS observation: point x (m, world), label y (0 surface, -1 inside, +1 outside), "
        "outward unit normal (zeros for external points); source_ns: the data time it refers to "
        "(station axis, ns); event_id: the contact event of a contact/internal point (-1 for "
-       "external points); accel_g: filtered |a| in G when it was emitted."),
+       "external points); accel_g: filtered |a| in G when it was emitted; p_false, dv_mps, "
+       "rebound: its event's evidence (impulse detector); sigma_m: placement uncertainty (m)."),
     _t("mapper.fit", "mapper_fit", 2, "mapper", "latest", "state",
        {"fit_index": Field("int"), "reliable": Field("bool", optional=True),
         "reasons": Field("list", optional=True), "data_ns": Field("int", optional=True),

@@ -22,6 +22,7 @@ observation can be placed: they are counted in ``stats.no_pose``.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -67,7 +68,16 @@ class Observation:
     event_id : int
         Contact event it belongs to, or -1 for external points.
     accel_g : float
-        Filtered |a| in G at emission.
+        Filtered |a| in G at emission (impulse detector: the impulse's peak residual).
+    p_false : float
+        Probability from the contact's physics that its event is false (impulse detector;
+        NaN: no evidence, e.g. the threshold detector or an external point).
+    dv_mps : float
+        Impulse per unit mass of its event along the normal, m/s (NaN: not measured).
+    rebound : bool
+        The vehicle approached before the event and moved away after it.
+    sigma_m : float
+        Placement uncertainty of a contact point, metres (NaN: unknown).
     """
 
     id: int
@@ -77,11 +87,19 @@ class Observation:
     normal: np.ndarray
     event_id: int
     accel_g: float
+    p_false: float = math.nan
+    dv_mps: float = math.nan
+    rebound: bool = False
+    sigma_m: float = math.nan
 
 
 @dataclasses.dataclass
 class ContactEvent:
-    """One detected contact (from threshold crossing to release)."""
+    """One detected contact (threshold: crossing to release; impulse: onset to release).
+
+    ``p_false``, ``features`` (:class:`~groundstation.contact.evidence.ImpulseFeatures`) and
+    ``rejected`` (too likely false to make observations) come from the impulse detector.
+    """
 
     id: int
     t_start_ns: int
@@ -90,6 +108,9 @@ class ContactEvent:
     normal: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
     position: np.ndarray | None = None
     observations: int = 0
+    p_false: float = math.nan
+    features: object = None
+    rejected: bool = False
 
 
 @dataclasses.dataclass

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Literal
 
 from groundstation.errors import ConfigError
@@ -14,8 +15,50 @@ G = 9.80665  # standard gravity, m/s^2
 class ContactSettings:
     """How contacts are detected and turned into observations.
 
+    Two detectors (``detector``): ``impulse`` (default, ``contact/impulse.py``) finds
+    external-force impulses in the body-frame accelerometer and scores each candidate with a
+    calibrated probability of being false from its physics (``contact/evidence.py``);
+    ``threshold`` is the paper's rule (filtered |a| above a0, ``contact/detector.py``), kept to
+    measure against.
+
     Attributes
     ----------
+    detector : "impulse" | "threshold"
+        Which detector runs (see above).
+    impulse_window_s : float
+        Impulse detector: moving-average window of the specific force, seconds. A touch's
+        impulse lasts 20-40 ms; a window about that long is the matched filter (its peak is
+        dv / window), longer ones lose slow touches (a 0.3 m/s touch averaged over 50 ms peaks
+        near 0.86 G, over 30 ms near 1.4 G) while propeller vibration grows only slowly.
+    baseline_s, baseline_gap_s : float
+        The baseline the impulse stands out from: the mean filtered specific force over
+        ``baseline_s`` before *and* after the sample, leaving ``baseline_gap_s`` out on each
+        side. Symmetric, so any manoeuvre whose acceleration changes linearly over a few tenths
+        of a second cancels (braking at the end of a path, turns); the detector therefore
+        decides ``baseline_gap_s + baseline_s`` of data time late.
+    lateral_threshold_g, axial_threshold_g : float
+        Trigger levels of the baseline residual, in G, across and along the thrust axis. A
+        multirotor's own forces act along its thrust axis (plus small drag), so across it the
+        accelerometer sees external forces almost alone: on the real aggressive flights the
+        lateral residual peaks at 0.4-0.7 G, the axial one (vibration, thrust changes) at
+        0.5-0.9 G. A candidate opens when ``hypot(lat / lateral, ax / axial) > 1``.
+        ``groundstation calibrate detector`` measures both on a contact-free segment.
+    thrust_axis : tuple of 3 float
+        Thrust direction in the IMU frame (FRD): the specific force a hovering vehicle reads,
+        normalised (``(0, 0, -1)`` for an IMU aligned with the body).
+    max_event_s : float
+        Longest impulse (a longer push is cut here and decided on what was seen).
+    evidence_window_s : float
+        Mocap velocity before and after an impulse is the mean over this window.
+    reject_p_false : float
+        Candidates at least this likely to be false make no observations (recorded as
+        ``contact.event`` with ``state = "rejected"``); others carry their ``p_false`` to the
+        mapper as a per-datum prior.
+    position_sigma_m : float
+        Standard deviation of the mocap position, metres (a term of each contact's placement
+        uncertainty ``sigma_m``).
+    evidence_model : str
+        JSON file of the evidence model (empty: the bundled ``contact/evidence_model.json``).
     filter : "moving_average" | "butterworth2" | "none"
         Low-pass filter applied to the earth-frame acceleration vector before the threshold.
         Real accelerometers on flying drones vibrate: unfiltered, a 0.6 G threshold fires on
@@ -54,6 +97,18 @@ class ContactSettings:
         in free space, not bouncing off a wall).
     """
 
+    detector: Literal["impulse", "threshold"] = "impulse"
+    impulse_window_s: float = 0.03
+    baseline_s: float = 0.15
+    baseline_gap_s: float = 0.04
+    lateral_threshold_g: float = 0.8
+    axial_threshold_g: float = 1.0
+    thrust_axis: tuple[float, float, float] = (0.0, 0.0, -1.0)
+    max_event_s: float = 1.0
+    evidence_window_s: float = 0.1
+    reject_p_false: float = 0.98
+    position_sigma_m: float = 0.003
+    evidence_model: str = ""
     filter: Literal["moving_average", "butterworth2", "none"] = "moving_average"
     window_s: float = 0.05
     cutoff_hz: float = 8.0
@@ -78,13 +133,31 @@ class ContactSettings:
             "drone_radius_m",
             "drone_height_m",
             "internal_depth_m",
+            "impulse_window_s",
+            "baseline_s",
+            "lateral_threshold_g",
+            "axial_threshold_g",
+            "max_event_s",
+            "evidence_window_s",
+            "position_sigma_m",
         )
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"contact.{name} must be > 0, got {getattr(self, name)!r}")
         if not 0 < self.release_ratio <= 1:
             raise ValueError(f"contact.release_ratio must be in (0, 1], got {self.release_ratio!r}")
-        for name in ("refractory_s", "quiet_s", "external_spacing_m"):
+        if self.detector not in ("impulse", "threshold"):
+            raise ValueError(
+                f"contact.detector must be impulse or threshold, got {self.detector!r}"
+            )
+        if not 0 < self.reject_p_false <= 1:
+            raise ValueError(
+                f"contact.reject_p_false must be in (0, 1], got {self.reject_p_false!r}"
+            )
+        axis = self.thrust_axis
+        if len(axis) != 3 or not all(math.isfinite(v) for v in axis) or math.hypot(*axis) < 0.5:
+            raise ValueError(f"contact.thrust_axis must be a 3-vector of norm ~1, got {axis!r}")
+        for name in ("refractory_s", "quiet_s", "external_spacing_m", "baseline_gap_s"):
             if getattr(self, name) < 0:
                 raise ValueError(f"contact.{name} must be >= 0, got {getattr(self, name)!r}")
 

@@ -52,8 +52,15 @@ import numpy as np
 
 from groundstation.bus.envelope import Envelope, Header
 from groundstation.bus.topics import TOPICS
-from groundstation.contact.detector import ContactDetector, Observation, earth_acceleration
+from groundstation.contact.detector import (
+    ContactDetector,
+    ContactEvent,
+    Observation,
+    earth_acceleration,
+)
+from groundstation.contact.impulse import ImpulseDetector
 from groundstation.contact.settings import AlignmentSettings, ContactSettings
+from groundstation.contact.vehicle import VehicleSettings
 from groundstation.sync.aligner import PoseBuffer
 
 INPUT_TOPICS = ("samples.imu", "samples.attitude", "samples.pose")
@@ -88,6 +95,10 @@ def _t_station(env: Envelope) -> int:
     return int(env.header.source_ns if t is None else t)
 
 
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
 def observation_payload(obs: Observation) -> tuple[dict, dict[str, np.ndarray]]:
     """``observations`` payload and arrays of one :class:`Observation`."""
     payload = {
@@ -96,6 +107,13 @@ def observation_payload(obs: Observation) -> tuple[dict, dict[str, np.ndarray]]:
         "event_id": int(obs.event_id),
         "accel_g": float(obs.accel_g),
     }
+    if obs.label != 1 and np.isfinite(obs.p_false):
+        payload.update(
+            p_false=float(obs.p_false),
+            dv_mps=_finite_or_none(obs.dv_mps),
+            rebound=bool(obs.rebound),
+            sigma_m=_finite_or_none(obs.sigma_m),
+        )
     arrays = {
         "x_m": np.asarray(obs.position, dtype=np.float64).reshape(3),
         "normal": np.asarray(obs.normal, dtype=np.float64).reshape(3),
@@ -124,7 +142,29 @@ def observation_from_envelope(env: Envelope) -> Observation:
         normal=n,
         event_id=int(p.get("event_id", -1)),
         accel_g=float(p.get("accel_g", 0.0)),
+        p_false=_float(p.get("p_false")),
+        dv_mps=_float(p.get("dv_mps")),
+        rebound=bool(p.get("rebound", False)),
+        sigma_m=_float(p.get("sigma_m")),
     )
+
+
+def _float(v) -> float:
+    return float("nan") if v is None else float(v)
+
+
+def event_payload(ev: ContactEvent, state: str) -> dict:
+    """``contact.event`` payload of a detector event (``state``: begin, end or rejected)."""
+    payload = {"id": int(ev.id), "state": state, "peak_g": float(ev.peak_g)}
+    if ev.features is not None:
+        f = ev.features
+        payload.update(
+            p_false=float(ev.p_false),
+            dv_mps=float(f.dv_imu_mps),
+            rebound=bool(f.rebound),
+            features=f.as_dict(),
+        )
+    return payload
 
 
 class ContactStage:
@@ -145,10 +185,17 @@ class ContactStage:
         settings: ContactSettings | None = None,
         alignment: AlignmentSettings | None = None,
         first_id: int = 0,
+        vehicle: VehicleSettings | None = None,
+        batch: int = 1,
     ) -> None:
-        self.settings = settings or ContactSettings()
+        self.settings = s = settings or ContactSettings()
         self.alignment = al = alignment or AlignmentSettings()
-        self.detector = ContactDetector(self.settings, first_id=first_id)
+        self.vehicle = vehicle or VehicleSettings()
+        if s.detector == "impulse":
+            self.detector = ImpulseDetector(s, self.vehicle, first_id=first_id, batch=batch)
+        else:
+            self.detector = ContactDetector(s, first_id=first_id)
+        self._events_out = 0
         self._att = PoseBuffer(max_gap_ns=int(al.attitude_max_gap_s * 1e9))
         self._pose = PoseBuffer(max_gap_ns=int(al.pose_max_gap_s * 1e9))
         self._body = None if al.body_id < 0 else int(al.body_id)
@@ -180,8 +227,12 @@ class ContactStage:
         return out
 
     def flush(self) -> list[Envelope]:
-        """End of data: release every queued IMU sample (rule 3)."""
-        return self._release(final=True)
+        """End of data: release every queued IMU sample (rule 3), then let an impulse detector
+        decide what it still holds."""
+        out = self._release(final=True)
+        if isinstance(self.detector, ImpulseDetector):
+            out += self._impulse_outputs(self.detector.flush())
+        return out
 
     @property
     def pending(self) -> int:
@@ -260,6 +311,10 @@ class ContactStage:
         if not pose:
             self.stats.no_pose += 1
         det = self.detector
+        if isinstance(det, ImpulseDetector):
+            return self._impulse_outputs(
+                det.update(t, acc, att.quaternion, pose.position if pose else None)
+            )
         was_in, n_events = det.in_contact, det.stats.contacts
         obs = det.update(
             t, earth_acceleration(acc, att.quaternion), pose.position if pose else None
@@ -273,6 +328,28 @@ class ContactStage:
             ev = det.events[-1]
             pos = _NAN3 if ev.position is None else ev.position
             out.append(self._event_env("end", ev.id, ev.peak_g, pos, ev.normal, t))
+        for o in obs:
+            payload, arrays = observation_payload(o)
+            out.append(self._env("observations", payload, arrays, o.t_ns))
+        self.stats.observations += len(obs)
+        return out
+
+    def _impulse_outputs(self, obs: list[Observation]) -> list[Envelope]:
+        """Event messages of the impulses the detector closed, then their observations."""
+        out: list[Envelope] = []
+        events = self.detector.events
+        for ev in events[self._events_out :]:
+            pos = _NAN3 if ev.position is None else ev.position
+            states = (("rejected", ev.t_start_ns),) if ev.rejected else (
+                ("begin", ev.t_start_ns), ("end", ev.t_end_ns)
+            )  # fmt: skip
+            for state, t in states:
+                self.stats.events += state == "begin"
+                out.append(self._env("contact.event", event_payload(ev, state), {
+                    "position_m": np.array(pos, dtype=np.float64).reshape(3),
+                    "normal": np.array(ev.normal, dtype=np.float64).reshape(3),
+                }, t))  # fmt: skip
+        self._events_out = len(events)
         for o in obs:
             payload, arrays = observation_payload(o)
             out.append(self._env("observations", payload, arrays, o.t_ns))

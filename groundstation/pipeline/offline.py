@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 
 from groundstation.acquisition.reader import open_recording
 from groundstation.acquisition.replay import iter_replay
@@ -94,6 +94,70 @@ def recording_span(path: str) -> tuple[int, float, dict | None]:
         return int(rec.summary.start_ns or 0), rec.summary.duration_s, rec.truth()
 
 
+@dataclasses.dataclass
+class DetectionRun:
+    """The detector stage alone on a recording (what ``bench detector`` measures).
+
+    Attributes
+    ----------
+    log_path : str
+    events : list of Envelope
+        ``contact.event`` messages in order (begin/end, and rejected candidates).
+    observations : list of Observation
+    duration_s : float
+    start_ns : int
+    truth : dict or None
+    stats : dict
+        Detector stage counters.
+    wall_s : float
+    """
+
+    log_path: str
+    events: list[Envelope]
+    observations: list[Observation]
+    duration_s: float
+    start_ns: int
+    truth: dict | None
+    stats: dict
+    wall_s: float
+
+
+def detect_offline(log_path: str, config: Config | None = None) -> DetectionRun:
+    """Run only the detector stage on ``log_path`` (the same code as :func:`run_offline`)."""
+    cfg = config or load_config()
+    t_wall = time.perf_counter()
+    start_ns, duration, truth = recording_span(log_path)
+    stage = ContactStage(cfg.contact, cfg.alignment, vehicle=cfg.vehicle, batch=64)
+    events, observations = _split(_stage_outputs(stage, log_path, cfg, None))
+    return DetectionRun(
+        str(log_path), events, observations, duration, start_ns, truth,
+        stage.stats.as_dict(), time.perf_counter() - t_wall,
+    )  # fmt: skip
+
+
+def _stage_outputs(
+    stage: ContactStage, log_path: str, cfg: Config, progress: Callable[[int], None] | None
+) -> Iterator[Envelope]:
+    for env in iter_replay(log_path, settings=cfg.acquisition):
+        if env.topic not in INPUT_TOPICS:
+            continue
+        yield from stage.push(env)
+        if progress is not None:
+            progress(env.header.recv_ns)
+    yield from stage.flush()
+
+
+def _split(outs: Iterable[Envelope]) -> tuple[list[Envelope], list[Observation]]:
+    events: list[Envelope] = []
+    observations: list[Observation] = []
+    for env in outs:
+        if env.topic == "contact.event":
+            events.append(env)
+        else:
+            observations.append(observation_from_envelope(env))
+    return events, observations
+
+
 def run_offline(
     log_path: str,
     config: Config | None = None,
@@ -117,36 +181,31 @@ def run_offline(
     cfg = config or load_config()
     t_wall = time.perf_counter()
     start_ns, duration, truth = recording_span(log_path)
-    stage = ContactStage(cfg.contact, cfg.alignment)
+    stage = ContactStage(cfg.contact, cfg.alignment, vehicle=cfg.vehicle, batch=64)
     mapper = Mapper(cfg.mapper, cfg.mapping, cfg.surface)
     events: list[Envelope] = []
     observations: list[Observation] = []
     fits: list[FitResult] = []
+    next_report = [0]
 
-    def handle(outs: list[Envelope]) -> None:
-        for env in outs:
-            if env.topic == "contact.event":
-                events.append(env)
-                continue
-            obs = observation_from_envelope(env)
-            observations.append(obs)
-            mapper.add([obs])
-            if mapper.due():
-                _append_fit(fits, mapper.refit(), keep_meshes)
+    def tick(recv_ns: int) -> None:
+        if progress is not None and recv_ns >= next_report[0]:
+            progress((recv_ns - start_ns) / 1e9, duration, len(fits), _begins(events))
+            next_report[0] = recv_ns + 5_000_000_000
 
-    next_report = 0
-    for env in iter_replay(log_path, settings=cfg.acquisition):
-        if env.topic not in INPUT_TOPICS:
+    for env in _stage_outputs(stage, log_path, cfg, tick):
+        if env.topic == "contact.event":
+            events.append(env)
             continue
-        handle(stage.push(env))
-        if progress is not None and env.header.recv_ns >= next_report:
-            progress((env.header.recv_ns - start_ns) / 1e9, duration, len(fits), len(events))
-            next_report = env.header.recv_ns + 5_000_000_000
-    handle(stage.flush())
+        obs = observation_from_envelope(env)
+        observations.append(obs)
+        mapper.add([obs])
+        if mapper.due():
+            _append_fit(fits, mapper.refit(), keep_meshes)
     if mapper.pending and mapper.ready():
         _append_fit(fits, mapper.refit(), keep_meshes)
     if progress is not None:
-        progress(duration, duration, len(fits), len(events))
+        progress(duration, duration, len(fits), _begins(events))
     return PipelineResult(
         log_path=str(log_path),
         mode="in-process",
@@ -159,6 +218,10 @@ def run_offline(
         wall_s=time.perf_counter() - t_wall,
         stats={"detector": stage.stats.as_dict(), "mapper_duplicates": mapper.duplicates},
     )
+
+
+def _begins(events: list[Envelope]) -> int:
+    return sum(e.payload["state"] == "begin" for e in events)
 
 
 def _append_fit(fits: list[FitResult], fit: FitResult, keep_meshes: int) -> None:

@@ -74,7 +74,9 @@ class DetectorProcess:
         self.ctx = context or zmq.Context()
         self.pub = Publisher(topics=TOPICS, context=self.ctx, **session.publisher_kwargs(name))
         self.sub: Subscriber | None = None
-        self.stage = ContactStage(config.contact, config.alignment, first_id=first_id)
+        self.stage = ContactStage(
+            config.contact, config.alignment, first_id=first_id, vehicle=config.vehicle
+        )
         self.rates = RateCounter()
         self.state = "starting"
         self.finished = False

@@ -1,0 +1,190 @@
+"""Evidence per candidate impulse: named physical features and a calibrated ``p_false`` (pure).
+
+A touch and a gust leave different traces (issue 12, DESIGN.md §7):
+
+- a touch is **short** (the guard and the structure stop the drone in 20-40 ms), a gust lasts
+  50-300 ms (``duration_s``);
+- before a touch the drone **approaches** the contact point (its velocity along the outward
+  normal is negative, ``approach_mps`` > 0) and after it it **rebounds** (positive,
+  ``rebound_mps`` > 0: the normal velocity reverses within 50-150 ms); a gust pushes the drone
+  along its direction whether it was moving that way or not;
+- a real external force moves the drone: the mocap velocity change across the impulse agrees
+  with the impulse the IMU measured (``agreement`` ~ 1), while vibration bursts and sensor
+  glitches integrate to little and move nothing;
+- across the thrust axis the accelerometer sees external forces alone (``axial_fraction``:
+  0 for a force across the thrust axis, 1 along it, where thrust changes also live).
+
+:class:`EvidenceModel` combines them in a logistic model on those named features (one with
+mocap, one from the IMU alone for logs without poses), fitted on labelled SITL flights by
+``groundstation bench detector --train`` and shipped as ``evidence_model.json`` beside this
+module (its ``provenance`` says which flights and seeds). ``p_false`` is calibrated for a
+mix of touches and false impulses as in those flights (about one to one).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from groundstation.errors import ConfigError
+
+BUNDLED_MODEL = Path(__file__).with_name("evidence_model.json")
+
+
+@dataclasses.dataclass(frozen=True)
+class ImpulseFeatures:
+    """What one candidate impulse looked like (units in the names; NaN: not measurable).
+
+    Attributes
+    ----------
+    peak_g : float
+        Largest baseline residual of the filtered specific force, G.
+    score : float
+        Largest trigger score (residual over the per-axis trigger levels; > 1 opened it).
+    duration_s : float
+        Time the residual along the impulse direction stayed above half its peak, seconds.
+    dv_imu_mps : float
+        Impulse per unit mass along the impulse direction (integral of the specific force above
+        the pre-impulse baseline), m/s.
+    axial_fraction : float
+        Share of the peak residual along the thrust axis (0 across it, 1 along it).
+    approach_mps : float
+        Speed towards the contact point before the impulse: ``-(v_before . n)``, m/s (mocap).
+    rebound_mps : float
+        Speed away from it after the impulse: ``v_after . n``, m/s (mocap).
+    agreement : float
+        Mocap velocity change along n over the IMU impulse (``(approach + rebound) / dv_imu``).
+    """
+
+    peak_g: float
+    score: float
+    duration_s: float
+    dv_imu_mps: float
+    axial_fraction: float
+    approach_mps: float = math.nan
+    rebound_mps: float = math.nan
+    agreement: float = math.nan
+
+    @property
+    def has_mocap(self) -> bool:
+        return math.isfinite(self.approach_mps) and math.isfinite(self.rebound_mps)
+
+    @property
+    def rebound(self) -> bool:
+        """The normal velocity reversed: approaching before, moving away after."""
+        return self.has_mocap and self.approach_mps > 0.05 and self.rebound_mps > 0.02
+
+    def as_dict(self) -> dict[str, float]:
+        return {k: float(v) for k, v in dataclasses.asdict(self).items()}
+
+
+def model_inputs(f: ImpulseFeatures) -> dict[str, float]:
+    """The named inputs of the logistic model, transformed to comparable ranges."""
+    z = {
+        "log_duration_ms": math.log(max(f.duration_s, 1e-3) * 1e3),
+        "log_dv_imu": math.log(max(f.dv_imu_mps, 1e-3)),
+        "log_peak_g": math.log(max(f.peak_g, 1e-3)),
+        "axial_fraction": f.axial_fraction,
+    }
+    if f.has_mocap:
+        z.update(
+            approach=float(np.clip(f.approach_mps, -1.0, 2.0)),
+            rebound=float(np.clip(f.rebound_mps, -1.0, 2.0)),
+            reversal=float(np.clip(min(f.approach_mps, f.rebound_mps), -1.0, 1.0)),
+            agreement=float(np.clip(f.agreement, -1.0, 3.0)) if math.isfinite(f.agreement) else 0.0,
+        )
+    return z
+
+
+@dataclasses.dataclass(frozen=True)
+class Logistic:
+    """``p = sigmoid(intercept + sum_k coef_k (z_k - mean_k) / scale_k)`` on named inputs."""
+
+    names: tuple[str, ...]
+    mean: tuple[float, ...]
+    scale: tuple[float, ...]
+    coef: tuple[float, ...]
+    intercept: float
+
+    def __post_init__(self) -> None:
+        n = len(self.names)
+        if not (len(self.mean) == len(self.scale) == len(self.coef) == n) or n == 0:
+            raise ConfigError("evidence model: names, mean, scale and coef must have one length")
+
+    def probability(self, z: dict[str, float]) -> float:
+        x = np.array([z[k] for k in self.names], dtype=np.float64)
+        s = self.intercept + float(
+            np.dot(self.coef, (x - np.asarray(self.mean)) / np.asarray(self.scale))
+        )
+        return float(1.0 / (1.0 + math.exp(-max(min(s, 50.0), -50.0))))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Logistic:
+        try:
+            return cls(
+                tuple(d["names"]),
+                tuple(float(v) for v in d["mean"]),
+                tuple(float(v) for v in d["scale"]),
+                tuple(float(v) for v in d["coef"]),
+                float(d["intercept"]),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"evidence model: bad logistic block ({exc})") from None
+
+
+@dataclasses.dataclass(frozen=True)
+class EvidenceModel:
+    """Two logistic models: with mocap features, and from the IMU alone."""
+
+    with_mocap: Logistic
+    imu_only: Logistic
+    provenance: str = ""
+
+    def p_false(self, f: ImpulseFeatures) -> float:
+        """Probability that the impulse was not a contact with a structure."""
+        z = model_inputs(f)
+        if f.has_mocap and all(k in z for k in self.with_mocap.names):
+            return self.with_mocap.probability(z)
+        return self.imu_only.probability(z)
+
+    def to_dict(self) -> dict:
+        return {
+            "schema": "groundstation-evidence/1",
+            "provenance": self.provenance,
+            "with_mocap": self.with_mocap.to_dict(),
+            "imu_only": self.imu_only.to_dict(),
+        }
+
+    @classmethod
+    def load(cls, path: str | Path | None = None) -> EvidenceModel:
+        """The model in ``path`` (default: the bundled one).
+
+        Raises
+        ------
+        ConfigError
+            Missing or malformed file (the message names it).
+        """
+        p = Path(path) if path else BUNDLED_MODEL
+        try:
+            d = json.loads(p.read_text())
+        except FileNotFoundError:
+            raise ConfigError(
+                f"evidence model {str(p)!r} does not exist",
+                hint="leave contact.evidence_model empty for the bundled model",
+            ) from None
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ConfigError(f"evidence model {str(p)!r} is not readable JSON: {exc}") from None
+        if not isinstance(d, dict) or d.get("schema") != "groundstation-evidence/1":
+            raise ConfigError(f"evidence model {str(p)!r} is not a groundstation-evidence/1 file")
+        return cls(
+            Logistic.from_dict(d.get("with_mocap", {})),
+            Logistic.from_dict(d.get("imu_only", {})),
+            str(d.get("provenance", "")),
+        )

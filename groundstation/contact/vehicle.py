@@ -1,0 +1,178 @@
+"""The vehicle's body: where on it a contact with a given outward normal happens (pure).
+
+A contact with a structure whose outward normal is ``n`` (world frame) happens at the point of
+the body farthest along ``-n``: the body's *support point* in direction ``-n``. For a convex
+part that is exact; for a union of parts (four prop guards, legs, the central body) it is the
+support point of the union, i.e. of the part that faces the structure. With the vehicle's pose
+at the onset of the impulse, that point is where the structure's surface was.
+
+Two shapes (``[vehicle] shape``):
+
+- ``cylinder``: the paper's vertical cylinder of radius ``radius_m`` and height ``height_m``
+  circumscribing the drone, axis along world z whatever the attitude (as the paper's rule
+  ``x - r n`` / ``x - h n`` assumes). The bundled simple SITL engine collides with exactly this.
+- ``guards``: a quadrotor with four prop guards (thin rings of radius ``guard_radius_m`` around
+  rotors on arms of ``arm_length_m``, in the body's x-y plane ``guard_z_m`` above the centre of
+  mass, ``layout`` "x" or "+"), a central box (``body_half_m``) and legs (vertical segments of
+  ``leg_length_m`` below the body at ``leg_offset_m`` from the centre on the arm diagonals). Body
+  frame FLU (x forward, y left, z up); the attitude rotates it into the world.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Literal
+
+import numpy as np
+
+from groundstation.errors import ConfigError
+
+
+@dataclasses.dataclass(frozen=True)
+class VehicleSettings:
+    """Geometry of the vehicle's body (metres, body frame FLU: x forward, y left, z up).
+
+    Attributes
+    ----------
+    shape : "cylinder" | "guards"
+        The paper's circumscribing cylinder, or a guarded quadrotor (module docstring).
+    radius_m, height_m : float
+        Cylinder radius and height (paper: 0.2 m and 0.1 m).
+    layout : "x" | "+"
+        Rotor layout of a guarded quadrotor: arms at 45/135/225/315 deg ("x") or along the
+        body axes ("+").
+    arm_length_m : float
+        Centre of mass to rotor axis, metres.
+    guard_radius_m : float
+        Radius of each prop guard ring (rim distance from the rotor axis), metres.
+    guard_z_m : float
+        Height of the guard rings' plane above the centre of mass, metres.
+    body_half_m : tuple of 3 float
+        Half sizes of the central body box, metres.
+    leg_length_m : float
+        Length of the legs below the body box (0: no legs), metres.
+    leg_offset_m : float
+        Horizontal distance of the legs from the centre, on the arm directions, metres.
+    """
+
+    shape: Literal["cylinder", "guards"] = "cylinder"
+    radius_m: float = 0.2
+    height_m: float = 0.1
+    layout: Literal["x", "+"] = "x"
+    arm_length_m: float = 0.17
+    guard_radius_m: float = 0.12
+    guard_z_m: float = 0.0
+    body_half_m: tuple[float, float, float] = (0.06, 0.06, 0.03)
+    leg_length_m: float = 0.08
+    leg_offset_m: float = 0.08
+
+    def __post_init__(self) -> None:
+        if self.shape not in ("cylinder", "guards"):
+            raise ConfigError(f"vehicle.shape must be cylinder or guards, got {self.shape!r}")
+        if self.layout not in ("x", "+"):
+            raise ConfigError(f"vehicle.layout must be x or +, got {self.layout!r}")
+        for name in ("radius_m", "height_m", "arm_length_m", "guard_radius_m"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"vehicle.{name} must be > 0 m, got {getattr(self, name)!r}")
+        for name in ("leg_length_m", "leg_offset_m"):
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"vehicle.{name} must be >= 0 m, got {getattr(self, name)!r}")
+        if len(self.body_half_m) != 3 or not all(v > 0 for v in self.body_half_m):
+            raise ConfigError(f"vehicle.body_half_m must be 3 sizes > 0, got {self.body_half_m!r}")
+
+    @property
+    def reach_m(self) -> float:
+        """Largest distance of any body point from the centre of mass, metres."""
+        if self.shape == "cylinder":
+            return math.hypot(self.radius_m, 0.5 * self.height_m)
+        rim = self.arm_length_m + self.guard_radius_m
+        bx, by, bz = self.body_half_m
+        return max(
+            math.hypot(rim, self.guard_z_m),
+            math.hypot(math.hypot(bx, by), bz + self.leg_length_m),
+        )
+
+    def rotor_centres(self) -> np.ndarray:
+        """(4, 3) rotor axis points in the guard plane, body FLU, metres."""
+        a0 = math.pi / 4 if self.layout == "x" else 0.0
+        ang = a0 + np.arange(4) * math.pi / 2
+        L = self.arm_length_m
+        return np.stack([L * np.cos(ang), L * np.sin(ang), np.full(4, self.guard_z_m)], axis=1)
+
+    def leg_points(self) -> np.ndarray:
+        """(8, 3) end points of the legs (top and bottom of each), body FLU, metres."""
+        if self.leg_length_m <= 0:
+            return np.zeros((0, 3))
+        a0 = math.pi / 4
+        ang = a0 + np.arange(4) * math.pi / 2
+        d = self.leg_offset_m
+        top = -self.body_half_m[2]
+        pts = []
+        for a in ang:
+            x, y = d * math.cos(a), d * math.sin(a)
+            pts += [(x, y, top), (x, y, top - self.leg_length_m)]
+        return np.asarray(pts, dtype=np.float64)
+
+
+def _support_guards(v: VehicleSettings, d: np.ndarray) -> np.ndarray:
+    """Support point of the guarded body in body direction ``d`` (unit, FLU)."""
+    best, best_h = None, -math.inf
+    dxy = np.array([d[0], d[1], 0.0])
+    nxy = float(np.linalg.norm(dxy))
+    ring = v.guard_radius_m * (dxy / nxy) if nxy > 1e-9 else np.zeros(3)
+    for c in v.rotor_centres():
+        p = c + ring  # farthest point of a horizontal circle along d
+        h = float(p @ d)
+        if h > best_h:
+            best, best_h = p, h
+    bx, by, bz = v.body_half_m
+    corner = np.array([math.copysign(bx, d[0]), math.copysign(by, d[1]), math.copysign(bz, d[2])])
+    if float(corner @ d) > best_h:
+        best, best_h = corner, float(corner @ d)
+    for p in v.leg_points():
+        if float(p @ d) > best_h:
+            best, best_h = p, float(p @ d)
+    return best
+
+
+def _support_cylinder(v: VehicleSettings, d: np.ndarray) -> np.ndarray:
+    """Support point of the world-vertical cylinder in world direction ``d`` (unit)."""
+    nxy = math.hypot(d[0], d[1])
+    ring = (
+        np.array([d[0], d[1], 0.0]) * (v.radius_m / nxy) if nxy > 1e-9 else np.zeros(3)
+    )  # a face-on vertical normal touches the flat end anywhere: take its centre
+    return ring + np.array([0.0, 0.0, math.copysign(0.5 * v.height_m, d[2]) if d[2] else 0.0])
+
+
+def contact_offset(
+    v: VehicleSettings, normal_world: np.ndarray, r_world_body: np.ndarray
+) -> np.ndarray:
+    """Offset (world, metres) from the centre of mass to the body point that touches a surface
+    with outward normal ``normal_world``.
+
+    Parameters
+    ----------
+    v : VehicleSettings
+    normal_world : (3,) float64
+        Outward unit normal of the structure, world frame (ENU).
+    r_world_body : (3, 3) float64
+        Rotation body FLU -> world ENU at the time of the contact.
+
+    Returns
+    -------
+    (3,) float64, metres, world frame
+    """
+    d_world = -np.asarray(normal_world, dtype=np.float64)
+    d_world = d_world / max(float(np.linalg.norm(d_world)), 1e-12)
+    if v.shape == "cylinder":
+        return _support_cylinder(v, d_world)
+    R = np.asarray(r_world_body, dtype=np.float64)
+    return R @ _support_guards(v, R.T @ d_world)
+
+
+def paper_offset(normal_world: np.ndarray, radius_m: float, height_m: float) -> np.ndarray:
+    """The paper's rule: ``-r n`` when the horizontal part of n dominates, else ``-h n``."""
+    n = np.asarray(normal_world, dtype=np.float64)
+    horizontal = math.hypot(n[0], n[1]) >= abs(n[2])
+    return -(radius_m if horizontal else height_m) * n
