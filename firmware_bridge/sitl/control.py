@@ -20,6 +20,9 @@ class Setpoint:
 
     ``position`` axes that are None are velocity-controlled from ``velocity`` instead (m, m/s,
     ENU). ``yaw`` in rad (ENU, from +x counter-clockwise). ``armed`` False cuts the motors.
+    ``a_max`` (m/s^2, horizontal) and ``max_tilt`` (rad), when set, replace the controller's
+    limits for this setpoint: an aggressive pilot accelerates and brakes harder than the default
+    cascade allows (real pilots brake at 1-2 G at the end of a fast leg).
     """
 
     position: tuple[float | None, float | None, float | None] = (None, None, None)
@@ -27,6 +30,8 @@ class Setpoint:
     yaw: float = 0.0
     max_speed: float = 1.5  # m/s, horizontal
     armed: bool = True
+    a_max: float | None = None  # m/s^2, horizontal; None = ControlGains.a_max
+    max_tilt: float | None = None  # rad; None = ControlGains.max_tilt
 
 
 @dataclass(frozen=True)
@@ -65,16 +70,17 @@ class Controller:
         v_sp[2] = max(-g.vz_max, min(g.vz_max, v_sp[2]))
         ax, ay = g.kv * (v_sp[0] - vel[0]), g.kv * (v_sp[1] - vel[1])
         az = max(-g.az_max, min(g.az_max, g.kv * (v_sp[2] - vel[2])))
+        a_max = g.a_max if sp.a_max is None else sp.a_max
         h = math.hypot(ax, ay)
-        if h > g.a_max:
-            ax, ay = ax * g.a_max / h, ay * g.a_max / h
+        if h > a_max:
+            ax, ay = ax * a_max / h, ay * a_max / h
         m = body.p.mass
         # Thrust vector (world), compensating linear drag; tilt-limited.
         fx = m * ax + body.p.drag * vel[0]
         fy = m * ay + body.p.drag * vel[1]
         fz = max(0.2 * m * GRAVITY, m * (az + GRAVITY) + body.p.drag * vel[2])
         h = math.hypot(fx, fy)
-        lim = fz * math.tan(g.max_tilt)
+        lim = fz * math.tan(g.max_tilt if sp.max_tilt is None else sp.max_tilt)
         if h > lim:
             fx, fy = fx * lim / h, fy * lim / h
         norm = math.sqrt(fx * fx + fy * fy + fz * fz)

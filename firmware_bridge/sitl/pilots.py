@@ -1,187 +1,53 @@
-"""Scripted pilots: ``hover``, ``survey``, ``touch``, ``slow_touch`` (pure, deterministic).
+"""Scripted pilots (pure, deterministic): what a pilot flies in a scene.
 
-A pilot maps (sim time, body state) to a :class:`~firmware_bridge.sitl.control.Setpoint`. The
-survey plans, for any scene, a touch of every reachable face: for each candidate touch point P
-with outward normal n, the drone's centre at contact is C = P + n r (horizontal n) or
-C = P + n h/2 (vertical n); the approach starts at a standoff S = C + n d (d = 0.6 m, shortened
-to >= 0.35 m near the region's bounds) and is reachable when S lies inside the region, the
-segment S -> C is clear of every structure, and the first contact at C is with the target face.
-Transit between standoffs is a straight line when clear, else an A* path on a 0.2 m grid.
+- ``hover``: holds the start position.
+- ``survey``: touches every reachable face (:func:`~firmware_bridge.sitl.planner.plan_survey`)
+  straight in along the normal at 1 m/s.
+- ``touch``, ``slow_touch``: one touch at 1 m/s; a 0.1 m/s touch then a 1 m/s one.
+- ``varied``: the survey's touches with what real pilots do: each touch draws its normal
+  approach speed (0.2-1.2 m/s), its angle off the normal (0-45 deg, in a random direction of the
+  face plane, with the longest clear run-up) and a pause at the standoff from the seed.
+- ``free``: no touches at all: fast legs in clear space (3-5 m/s), hard braking (0.8-2 G) and
+  turns at speed (0.8-1.8 G), as real pilots do at the end of a path
+  (:mod:`~firmware_bridge.sitl.maneuvers`).
+
+A pilot maps (sim time, body state) to a :class:`~firmware_bridge.sitl.control.Setpoint`; the
+``varied`` and ``free`` pilots draw from their own generator (seeded from the simulation's seed),
+so the other pilots and every other random stream are unchanged by them.
 """
 
 from __future__ import annotations
 
-import heapq
 import math
-from dataclasses import dataclass
+
+import numpy as np
 
 from firmware_bridge.errors import BridgeError
 from firmware_bridge.sitl.control import Setpoint
-from firmware_bridge.sitl.physics import QuadBody, contact_penetration
+from firmware_bridge.sitl.maneuvers import DashRun, ManeuverLog, plan_dashes
+from firmware_bridge.sitl.planner import (  # noqa: F401 - re-exported: pilots' public names
+    Planner,
+    TouchTarget,
+    _dist,
+    plan_survey,
+)
 from firmware_bridge.sitl.scene import Scene
 
 Vec = tuple[float, float, float]
+PILOTS = ("hover", "survey", "touch", "slow_touch", "varied", "free")
 
 
 class PilotError(BridgeError, ValueError):
     """An unknown pilot name or a scene in which the pilot cannot fly."""
 
 
-@dataclass(frozen=True)
-class TouchTarget:
-    """A planned touch: face label, contact centre C, outward normal n, standoff S."""
-
-    face: tuple[int, str]  # (object index, face name)
-    centre: Vec
-    normal: Vec
-    standoff: Vec
-
-
-def _add(a: Vec, b: Vec, s: float = 1.0) -> Vec:
-    return (a[0] + s * b[0], a[1] + s * b[1], a[2] + s * b[2])
-
-
-def _dist(a: Vec, b: Vec) -> float:
-    return math.dist(a, b)
-
-
-class Planner:
-    """Reachability and collision-free paths for a drone of radius r, height h in a scene."""
-
-    def __init__(self, scene: Scene, radius: float, height: float, margin: float = 0.12):
-        self.scene, self.r, self.h, self.margin = scene, radius, height, margin
-        lo, hi = scene.region_min, scene.region_max
-        self.lo = (lo[0] + radius + 0.1, lo[1] + radius + 0.1, lo[2] + 0.25)
-        self.hi = (hi[0] - radius - 0.1, hi[1] - radius - 0.1, hi[2] - height / 2 - 0.05)
-
-    def in_region(self, p: Vec) -> bool:
-        return all(self.lo[i] <= p[i] <= self.hi[i] for i in range(3))
-
-    def free(self, p: Vec, margin: float | None = None) -> bool:
-        """No structure within ``margin`` of the drone cylinder centred at ``p``."""
-        m = self.margin if margin is None else margin
-        return contact_penetration(self.scene, p, self.r + m, self.h + 2 * m) is None
-
-    def segment_free(self, a: Vec, b: Vec, margin: float | None = None) -> bool:
-        n = max(1, int(math.ceil(_dist(a, b) / 0.05)))
-        return all(
-            self.free(_add(a, (b[0] - a[0], b[1] - a[1], b[2] - a[2]), k / n), margin)
-            for k in range(n + 1)
-        )
-
-    def touch_target(self, obj: int, face: str, point: Vec, n: Vec) -> TouchTarget | None:
-        """Plan the touch of ``point`` (outward normal ``n``) or None if it is unreachable."""
-        off = self.r if abs(n[2]) < 0.5 else self.h / 2
-        centre = _add(point, n, off)
-        probe = _add(centre, n, -0.01)  # just after first contact
-        c = contact_penetration(self.scene, probe, self.r, self.h)
-        if c is None or c.object_index != obj:
-            return None
-        if c.normal[0] * n[0] + c.normal[1] * n[1] + c.normal[2] * n[2] < 0.9:
-            return None
-        if not (self.lo[2] - 0.1 <= centre[2] <= self.hi[2]):
-            return None
-        for d in (0.6, 0.5, 0.45, 0.4, 0.35, 0.3):
-            s = _add(centre, n, d)
-            if not self.in_region(s) or not self.free(s):
-                continue
-            if self.segment_free(_add(centre, n, 0.03), s, margin=0.02):
-                return TouchTarget((obj, face), centre, n, s)
-        return None
-
-    def path(self, a: Vec, b: Vec) -> list[Vec]:
-        """Waypoints from ``a`` to ``b`` (excluding ``a``) avoiding structures; [] if none."""
-        if self.segment_free(a, b):
-            return [b]
-        step = 0.2
-        lo = self.lo
-        dims = tuple(max(1, int((self.hi[i] - lo[i]) / step) + 1) for i in range(3))
-
-        def cell(p: Vec) -> tuple[int, int, int]:
-            return tuple(  # type: ignore[return-value]
-                min(dims[i] - 1, max(0, round((p[i] - lo[i]) / step))) for i in range(3)
-            )
-
-        def centre(c: tuple[int, int, int]) -> Vec:
-            return (lo[0] + c[0] * step, lo[1] + c[1] * step, lo[2] + c[2] * step)
-
-        free_cache: dict[tuple[int, int, int], bool] = {}
-
-        def ok(c: tuple[int, int, int]) -> bool:
-            if c not in free_cache:
-                free_cache[c] = self.free(centre(c))
-            return free_cache[c]
-
-        start, goal = cell(a), cell(b)
-        openq = [(0.0, 0.0, start)]
-        came: dict[tuple[int, int, int], tuple[int, int, int] | None] = {start: None}
-        cost = {start: 0.0}
-        nbrs = [
-            (i, j, k)
-            for i in (-1, 0, 1)
-            for j in (-1, 0, 1)
-            for k in (-1, 0, 1)
-            if (i, j, k) != (0, 0, 0)
-        ]
-        found = False
-        while openq:
-            _, g, cur = heapq.heappop(openq)
-            if cur == goal:
-                found = True
-                break
-            if g > cost.get(cur, math.inf):
-                continue
-            for d in nbrs:
-                nxt = (cur[0] + d[0], cur[1] + d[1], cur[2] + d[2])
-                if not all(0 <= nxt[i] < dims[i] for i in range(3)) or not ok(nxt):
-                    continue
-                ng = g + step * math.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2)
-                if ng < cost.get(nxt, math.inf):
-                    cost[nxt], came[nxt] = ng, cur
-                    h = _dist(centre(nxt), centre(goal))
-                    heapq.heappush(openq, (ng + h, ng, nxt))
-        if not found:
-            return []
-        cells = []
-        c: tuple[int, int, int] | None = goal
-        while c is not None:
-            cells.append(centre(c))
-            c = came[c]
-        cells.reverse()
-        # Shortcut: keep a waypoint only when the straight line past it is blocked.
-        pts = [a] + cells[1:-1] + [b]
-        out, anchor, i = [], a, 1
-        while i < len(pts):
-            j = len(pts) - 1
-            while j > i and not self.segment_free(anchor, pts[j]):
-                j -= 1
-            out.append(pts[j])
-            anchor, i = pts[j], j + 1
-        return out
-
-
-def plan_survey(
-    scene: Scene, radius: float, height: float, spacing: float = 0.6
-) -> list[TouchTarget]:
-    """Every reachable touch of every face, ordered greedily by distance from the start."""
-    planner = Planner(scene, radius, height)
-    targets = []
-    for face in scene.faces(step=spacing):
-        for p, n in zip(face.points, face.normals, strict=True):
-            t = planner.touch_target(face.object_index, face.name, p, n)
-            if t is not None:
-                targets.append(t)
-    ordered, here = [], scene.start
-    while targets:
-        k = min(range(len(targets)), key=lambda i: _dist(here, targets[i].standoff))
-        ordered.append(targets.pop(k))
-        here = ordered[-1].standoff
-    return ordered
-
-
 class ScriptPilot:
     """Flies a list of actions: ``("goto", point, speed)``, ``("touch", TouchTarget, speed)``,
-    ``("hover", seconds)``. ``done`` turns True after the last action."""
+    ``("hover", seconds)``, ``("dash", Dash)``. ``done`` turns True after the last action.
+
+    ``body`` is any :class:`~firmware_bridge.sitl.engine.Physics` (position, velocity, contact).
+    ``maneuvers`` records the dashes' accelerate / turn / brake intervals.
+    """
 
     def __init__(self, scene: Scene, actions: list[tuple], yaw: float = 0.0):
         self.scene = scene
@@ -192,16 +58,18 @@ class ScriptPilot:
         self.t0 = 0.0
         self.hold: Vec = scene.start
         self.touched: list[tuple[int, str]] = []  # faces where contact was made, in order
+        self.maneuvers = ManeuverLog()
+        self._dash: DashRun | None = None
         self.done = not actions
 
-    def _next(self, t: float, body: QuadBody) -> None:
+    def _next(self, t: float, body) -> None:
         self.i += 1
         self.phase, self.t0 = "start", t
         self.hold = body.position
         if self.i >= len(self.actions):
             self.done = True
 
-    def setpoint(self, t: float, body: QuadBody) -> Setpoint:
+    def setpoint(self, t: float, body) -> Setpoint:
         """Setpoint for time ``t`` (s) given the body's true state."""
         if self.done:
             return Setpoint(position=self.hold, yaw=self.yaw)
@@ -220,18 +88,33 @@ class ScriptPilot:
             if arrived or t - self.t0 > _dist(self.hold, target) / speed + 8.0:
                 self._next(t, body)
             return Setpoint(position=target, yaw=self.yaw, max_speed=speed)
-        # touch: fly along -n at speed until contact with the target, then back off.
+        if kind == "dash":
+            if self._dash is None:
+                self._dash = DashRun(act[1], self.maneuvers, self.yaw)
+            sp = self._dash.setpoint(t, pos, vel)
+            if sp is not None:
+                return sp
+            self._dash = None
+            self._next(t, body)
+            return Setpoint(position=self.hold, yaw=self.yaw)
+        # touch: fly along -n (or the target's direction) at speed until contact, then back off.
         tgt: TouchTarget = act[1]
         speed = act[2]
         n = tgt.normal
         if self.phase == "run":
             c = body.contact
+            run_up = 0.6 if tgt.direction is None else _dist(tgt.standoff, tgt.centre)
             if c is not None and c.object_index == tgt.face[0]:
                 self.touched.append(tgt.face)
                 self.phase, self.t0 = "backoff", t
-            elif t - self.t0 > 0.6 / speed + 3.0:
+            elif t - self.t0 > run_up / speed + 3.0:
                 self.phase, self.t0 = "backoff", t
             e = (tgt.centre[0] - pos[0], tgt.centre[1] - pos[1], tgt.centre[2] - pos[2])
+            if tgt.direction is not None:  # along d through C: v = d s + k (e - (e.d) d)
+                d = tgt.direction
+                ed = e[0] * d[0] + e[1] * d[1] + e[2] * d[2]
+                v = tuple(d[i] * speed + 2.0 * (e[i] - ed * d[i]) for i in range(3))
+                return Setpoint(velocity=v, yaw=self.yaw, max_speed=max(speed, 1.5))  # type: ignore
             en = e[0] * n[0] + e[1] * n[1] + e[2] * n[2]
             k = 2.0  # hold the line through C perpendicular to n
             v = tuple(-n[i] * speed + k * (e[i] - en * n[i]) for i in range(3))
@@ -242,41 +125,105 @@ class ScriptPilot:
         return Setpoint(position=tgt.standoff, yaw=self.yaw)
 
 
-def _touch_actions(planner: Planner, here: Vec, tgt: TouchTarget, speed: float) -> list[tuple]:
+def _touch_actions(
+    planner: Planner, here: Vec, tgt: TouchTarget, speed: float, transit: float = 1.0
+) -> list[tuple]:
     path = planner.path(here, tgt.standoff) or [tgt.standoff]
-    acts: list[tuple] = [("goto", w, 1.0) for w in path]
-    acts += [("hover", 0.3), ("touch", tgt, speed), ("goto", tgt.standoff, 1.0)]
+    acts: list[tuple] = [("goto", w, transit) for w in path]
+    acts += [("hover", 0.3), ("touch", tgt, speed), ("goto", tgt.standoff, transit)]
     return acts
 
 
-def make_pilot(name: str, scene: Scene, radius: float, height: float) -> ScriptPilot:
-    """Build the scripted pilot ``name`` (``hover``, ``survey``, ``touch``, ``slow_touch``)."""
+def _varied_actions(
+    planner: Planner, targets: list[TouchTarget], rng: np.random.Generator
+) -> tuple[list[tuple], Vec]:
+    """The survey's touches, each with a drawn speed, angle, pause and transit speed."""
+    acts: list[tuple] = []
+    here = planner.scene.start
+    for tgt in targets:
+        v_normal = float(rng.uniform(0.2, 1.2))  # m/s along the normal
+        angle = float(rng.uniform(0.0, math.radians(45.0)))
+        azimuth = float(rng.uniform(0.0, 2 * math.pi))
+        pause = float(rng.uniform(0.3, 2.0))
+        transit = float(rng.uniform(0.6, 1.5))
+        run_ups = (0.8, 0.7, 0.6, 0.5, 0.45, 0.4, 0.35)
+        aimed = None
+        for k in range(4):  # other directions in the face plane, then straight in
+            aimed = planner.angled(tgt, angle, azimuth + k * math.pi / 2, run_ups)
+            if aimed is not None:
+                break
+        if aimed is None:
+            aimed, angle = planner.angled(tgt, 0.0, 0.0, run_ups) or tgt, 0.0
+        speed = v_normal / math.cos(angle)
+        path = planner.path(here, aimed.standoff) or [aimed.standoff]
+        acts += [("goto", w, transit) for w in path]
+        acts += [("hover", pause), ("touch", aimed, speed), ("goto", aimed.standoff, transit)]
+        here = aimed.standoff
+    return acts, here
+
+
+def _free_actions(
+    planner: Planner, rng: np.random.Generator, legs: int = 8
+) -> tuple[list[tuple], Vec]:
+    """Fast legs with hard braking and turns, joined by collision-free transits."""
+    dashes = plan_dashes(planner, rng, legs)
+    acts: list[tuple] = []
+    here = planner.scene.start
+    for dash in dashes:
+        start, end = dash.points[0], dash.points[-1]
+        acts += [("goto", w, 1.2) for w in planner.path(here, start) or [start]]
+        acts += [("hover", float(rng.uniform(0.3, 1.0))), ("dash", dash)]
+        # Back onto the planned end along the (clear) leg, wherever the braking stopped.
+        acts += [("hover", float(rng.uniform(0.5, 1.5))), ("goto", end, 1.0)]
+        here = end
+    return acts, here
+
+
+def make_pilot(name: str, scene: Scene, radius: float, height: float, seed: int = 0) -> ScriptPilot:
+    """Build the scripted pilot ``name`` (one of :data:`PILOTS`).
+
+    ``radius`` and ``height`` (m) are the planning cylinder around the drone; ``seed`` feeds
+    the ``varied`` and ``free`` pilots' own generator.
+    """
     planner = Planner(scene, radius, height)
     if name == "hover":
         return ScriptPilot(scene, [])
+    if name not in PILOTS:
+        raise PilotError(f"unknown pilot script {name!r}", hint=f"use {', '.join(PILOTS)}")
+    rng = np.random.default_rng([seed, 2])  # the pilot's own stream (mocap noise uses [seed, 1])
+    acts: list[tuple] = [("hover", 1.0)]
+    if name == "free":
+        more, here = _free_actions(planner, rng)
+        if not any(a[0] == "dash" for a in more):
+            raise PilotError(
+                f"pilot 'free': no clear straight leg of >= 2.5 m in scene {scene.name!r}",
+                hint="the free pilot needs open space inside the region to fly fast",
+            )
+        acts += more
+        acts += [("goto", w, 1.2) for w in planner.path(here, scene.start) or [scene.start]]
+        acts.append(("hover", 1.0))
+        return ScriptPilot(scene, acts)
     targets = plan_survey(scene, radius, height)
     if not targets:
         raise PilotError(
             f"pilot {name!r}: no reachable face in scene {scene.name!r}",
             hint="leave >= 0.6 m of free space in front of a face inside the region",
         )
-    acts: list[tuple] = [("hover", 1.0)]
     here = scene.start
     if name == "survey":
         for tgt in targets:
             acts += _touch_actions(planner, here, tgt, 1.0)
             here = tgt.standoff
+    elif name == "varied":
+        more, here = _varied_actions(planner, targets, rng)
+        acts += more
     elif name == "touch":
         acts += _touch_actions(planner, here, targets[0], 1.0)
         here = targets[0].standoff
-    elif name == "slow_touch":
+    else:  # slow_touch
         acts += _touch_actions(planner, here, targets[0], 0.1)
         acts += [("hover", 1.0), ("touch", targets[0], 1.0), ("goto", targets[0].standoff, 1.0)]
         here = targets[0].standoff
-    else:
-        raise PilotError(
-            f"unknown pilot script {name!r}", hint="use hover, survey, touch or slow_touch"
-        )
     acts += [("goto", w, 1.0) for w in planner.path(here, scene.start) or [scene.start]]
     acts.append(("hover", 1.0))
     return ScriptPilot(scene, acts)

@@ -115,7 +115,7 @@ class Simulation:
         script = None
         if pilot != "manual":
             name = pilot.split(":", 1)[1] if pilot.startswith("script:") else pilot
-            script = make_pilot(name, scene, vs.quad.radius, vs.quad.height)
+            script = make_pilot(name, scene, vs.quad.radius, vs.quad.height, seed=seed)
         self.vehicle = Vehicle(scene, script, seed, vs)
         self.mocap = mocap or MocapSettings()
         self.mocap_rng = np.random.default_rng([seed, 1])

@@ -144,7 +144,9 @@ class Vehicle:
         self.controller = Controller(s.gains)
         self.manual = ManualFlight(s, scene.start, scene.region_min[2]) if pilot is None else None
         self.pilot = pilot
-        self.gusts = GustSchedule(s.gusts, np.random.default_rng(self.rng.integers(2**63)))
+        self.gusts = GustSchedule(
+            s.gusts, np.random.default_rng(self.rng.integers(2**63)), s.quad.mass
+        )
         self.imu = ImuModel(
             s.imu, np.random.default_rng(self.rng.integers(2**63)), s.quad.mass * GRAVITY
         )
@@ -192,6 +194,9 @@ class Vehicle:
         b.step(self.dt, thrust, rates, self.scene, gust)
         self.steps += 1
         self.tracker.update(self.t, b)
+        log = getattr(self.pilot, "maneuvers", None)
+        if log is not None and log.active is not None:  # true acceleration, gravity removed
+            log.update(self.dt, b.fx, b.fy, b.fz - GRAVITY)
         self._acc[0] += b.fx
         self._acc[1] += b.fy
         self._acc[2] += b.fz

@@ -3,6 +3,14 @@
 groundstation sitl [--scene NAME|FILE] [--link pty|udp://HOST:PORT] [--mocap udp://HOST:PORT]
                    [--pilot script:NAME|manual] [--speed X] [--seed N] [--duration SECONDS]
                    [--truth FILE] [--record LOG.mcap] [--log-commands FILE]
+                   [--gust-rate PER_MIN] [--gust-force MIN:MAX] [--gust-duration MIN:MAX]
+                   [--gust-cluster P] [--gust-cluster-size A:B]
+
+Gusts: Poisson arrivals at ``--gust-rate``; each a half-sine force pulse of peak ``--gust-force``
+newtons (default 2.5-4 G on the 1 kg vehicle) lasting ``--gust-duration`` seconds (default
+0.04-0.06); with ``--gust-cluster P`` a gust starts a cluster of ``--gust-cluster-size`` gusts
+(default 3:5) 0.2-1 s apart from about the same direction. Real wind: e.g.
+``--gust-force 5:40 --gust-duration 0.05:0.3 --gust-cluster 0.3``.
 
 With ``--speed max --record LOG.mcap`` no transport is opened: the run is written straight to an
 MCAP recording in the station's layout, with simulated receive times and the truth embedded
@@ -29,6 +37,7 @@ from firmware_bridge.errors import BridgeError
 from firmware_bridge.mavlink import MavlinkCodec
 from firmware_bridge.mavlink.messages import ManualControl
 from firmware_bridge.sitl.gusts import GustParams
+from firmware_bridge.sitl.pilots import PILOTS
 from firmware_bridge.sitl.runner import MocapSettings, Simulation, run_paced
 from firmware_bridge.sitl.scene import load_scene, named_scenes
 from firmware_bridge.sitl.transport import PtyTransport, UdpTransport, open_transport
@@ -45,6 +54,27 @@ def _speed(text: str) -> float:
     if not value > 0 or not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"--speed {text!r}: must be > 0")
     return value
+
+
+def _range(kind: type, what: str):
+    """argparse type for ``MIN:MAX`` (a single value means MIN = MAX)."""
+
+    def parse(text: str) -> tuple:
+        parts = text.split(":")
+        try:
+            if len(parts) == 1:
+                lo = hi = kind(parts[0])
+            elif len(parts) == 2:
+                lo, hi = kind(parts[0]), kind(parts[1])
+            else:
+                raise ValueError
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected MIN:MAX {what}") from None
+        if not (math.isfinite(lo) and math.isfinite(hi)) or lo < 0 or hi < lo:
+            raise argparse.ArgumentTypeError(f"{text!r}: need 0 <= MIN <= MAX ({what})")
+        return lo, hi
+
+    return parse
 
 
 def add_sitl_arguments(parser: argparse.ArgumentParser) -> None:
@@ -66,7 +96,7 @@ def add_sitl_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--pilot",
         default="manual",
-        help="manual (MANUAL_CONTROL) or script:hover|survey|touch|slow_touch",
+        help=f"manual (MANUAL_CONTROL) or script:{'|'.join(PILOTS)}",
     )
     parser.add_argument(
         "--speed", type=_speed, default=1.0, help="times real time (default 1); 'max' = unpaced"
@@ -92,6 +122,34 @@ def add_sitl_arguments(parser: argparse.ArgumentParser) -> None:
         default=GustParams().rate_per_min,
         metavar="PER_MIN",
         help="gusts per minute (false-positive contacts)",
+    )
+    parser.add_argument(
+        "--gust-force",
+        type=_range(float, "newtons"),
+        default=None,
+        metavar="MIN:MAX",
+        help="peak gust force range, N (default 2.5-4 G times the vehicle mass)",
+    )
+    parser.add_argument(
+        "--gust-duration",
+        type=_range(float, "seconds"),
+        default=None,
+        metavar="MIN:MAX",
+        help="gust duration range, s (default 0.04:0.06)",
+    )
+    parser.add_argument(
+        "--gust-cluster",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="probability that a gust starts a cluster of gusts at one spot (default 0)",
+    )
+    parser.add_argument(
+        "--gust-cluster-size",
+        type=_range(int, "gusts"),
+        default=GustParams().cluster_size,
+        metavar="A:B",
+        help="gusts per cluster, the first included (default 3:5)",
     )
     parser.add_argument(
         "--record",
@@ -194,7 +252,7 @@ def _run(args: argparse.Namespace) -> int:
         )
     if not 0.0 <= args.mocap_drop <= 1.0:
         raise BridgeError(f"--mocap-drop {args.mocap_drop}: must be within 0..1")
-    vs = VehicleSettings(gusts=GustParams(rate_per_min=max(0.0, args.gust_rate)))
+    vs = VehicleSettings(gusts=_gusts(args, VehicleSettings().quad.mass))
     if args.record is not None and math.isfinite(args.speed):
         raise BridgeError(
             "--record writes the simulation straight to a file and needs --speed max",
@@ -287,6 +345,42 @@ def _run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _gusts(args: argparse.Namespace, mass: float) -> GustParams:
+    """Gust settings from the command line (forces in N on a vehicle of ``mass`` kg)."""
+    if not 0.0 <= args.gust_cluster <= 1.0:
+        raise BridgeError(f"--gust-cluster {args.gust_cluster}: must be within 0..1")
+    if args.gust_cluster_size[0] < 1:
+        raise BridgeError(
+            f"--gust-cluster-size {args.gust_cluster_size}: a cluster has >= 1 gust",
+            hint="e.g. --gust-cluster-size 3:5",
+        )
+    if args.gust_duration is not None and args.gust_duration[0] <= 0:
+        raise BridgeError(
+            f"--gust-duration {args.gust_duration}: must be > 0 s", hint="e.g. 0.05:0.3"
+        )
+    return GustParams.from_forces(
+        mass,
+        force=args.gust_force,
+        duration=args.gust_duration,
+        rate_per_min=max(0.0, args.gust_rate),
+        cluster_probability=args.gust_cluster,
+        cluster_size=tuple(args.gust_cluster_size),
+    )
+
+
+def _gust_argv(args: argparse.Namespace) -> list[str]:
+    """The gust options that differ from the defaults, as command-line words."""
+    out = []
+    if args.gust_force is not None:
+        out += ["--gust-force", f"{args.gust_force[0]:g}:{args.gust_force[1]:g}"]
+    if args.gust_duration is not None:
+        out += ["--gust-duration", f"{args.gust_duration[0]:g}:{args.gust_duration[1]:g}"]
+    if args.gust_cluster > 0:
+        out += ["--gust-cluster", f"{args.gust_cluster:g}"]
+        out += ["--gust-cluster-size", "{}:{}".format(*args.gust_cluster_size)]
+    return out
+
+
 def _stop_after_script(args: argparse.Namespace, sim: Simulation):
     """Stop rule without a duration: a script ends 2 s (simulated) after it is done."""
     script_end: list[float] = []
@@ -310,7 +404,8 @@ def _record(args: argparse.Namespace, sim: Simulation) -> int:
     from groundstation.errors import GroundstationError
 
     argv = ["groundstation", "sitl", "--scene", args.scene, "--pilot", args.pilot]
-    argv += ["--seed", str(args.seed), "--gust-rate", str(args.gust_rate), "--speed", "max"]
+    argv += ["--seed", str(args.seed), "--gust-rate", str(args.gust_rate)]
+    argv += _gust_argv(args) + ["--speed", "max"]
     if args.duration is not None:
         argv += ["--duration", str(args.duration)]
     argv += ["--record", args.record.name]

@@ -74,3 +74,44 @@ def test_slow_touch_pilot_produces_a_slow_then_a_fast_touch():
     f = fly(scene, make_pilot("slow_touch", scene, R, H), 60.0, until_done=True)
     kinds = [e.kind for e in f.vehicle.tracker.events]
     assert kinds == ["slow_touch", "touch"]
+
+
+@pytest.mark.parametrize(("name", "seed"), [("wall", 0), ("pillar", 1)])
+def test_free_pilot_flies_fast_brakes_hard_and_never_touches(name, seed):
+    scene = load_scene(name)
+    pilot = make_pilot("free", scene, R, H, seed=seed)
+    dashes = [a[1] for a in pilot.actions if a[0] == "dash"]
+    assert len(dashes) >= 4 and sum(d.speed >= 3.0 for d in dashes) >= len(dashes) / 2
+    assert any(len(d.points) == 3 for d in dashes)  # some legs turn at speed
+    f = fly(scene, pilot, 200.0, seed=seed, until_done=True)
+    assert pilot.done and f.outside_region == 0
+    assert f.vehicle.tracker.events == []  # no structure, no floor
+    speed = np.linalg.norm(np.diff(f.position, axis=0), axis=1) * 200.0
+    assert speed.max() > 3.0
+    kinds = [m.kind for m in pilot.maneuvers.records]
+    assert kinds.count("brake") == len(dashes) and "turn" in kinds
+    brakes = [m for m in pilot.maneuvers.records if m.kind == "brake"]
+    for m in brakes:
+        # The 50 ms-filtered true deceleration reaches the drawn braking level (0.8-2 G).
+        assert m.peak_accel_filtered == pytest.approx(m.target_accel, rel=0.1), m
+        assert m.end - m.start < 1.5
+    assert max(m.peak_accel_filtered for m in brakes) / 9.80665 > 1.2
+
+
+def test_varied_pilot_draws_speed_angle_and_pause_from_the_seed():
+    scene = load_scene("paper")
+    a = make_pilot("varied", scene, R, H, seed=5)
+    touches = [x for x in a.actions if x[0] == "touch"]
+    assert len(touches) == len(plan_survey(scene, R, H))
+    normal_speed, angle = [], []
+    for _, tgt, speed in touches:
+        cos = -float(np.dot(tgt.direction, tgt.normal))
+        normal_speed.append(speed * cos)
+        angle.append(np.degrees(np.arccos(min(1.0, cos))))
+    assert 0.2 <= min(normal_speed) and max(normal_speed) <= 1.2
+    assert max(normal_speed) - min(normal_speed) > 0.5
+    assert max(angle) <= 45.0 + 1e-9 and max(angle) > 25.0
+    b = make_pilot("varied", scene, R, H, seed=5)
+    assert [x[1:] for x in b.actions if x[0] == "touch"] == [x[1:] for x in touches]
+    c = make_pilot("varied", scene, R, H, seed=6)
+    assert [x[2] for x in c.actions if x[0] == "touch"] != [x[2] for x in touches]
