@@ -1,32 +1,29 @@
-"""``groundstation bench detector``: false contacts per minute on real flights vs recall on touches.
+"""``groundstation bench detector``: the production detector on simulated and real flights.
 
-Two kinds of input go through the same decoders a live session or a replay uses:
+What runs is exactly what ``groundstation replay`` runs: each flight is an MCAP recording (the
+SITL's wire bytes as the station would have received them, or a real flight imported with
+``groundstation import csv``) replayed through the decoders and the detector stage
+(:func:`groundstation.pipeline.offline.detect_offline`). The bench only generates flights,
+matches the detector's events to the recording's ground truth and counts.
 
-- **Real flights** (``aggressive_flight``: Horizontal/path_1, Horizontal/path_4, Vertical/path_1,
-  ``IMU_1.csv`` and ``IMU_avg.csv``) are imported with the CSV importer into a temporary MCAP and
-  read back with :func:`groundstation.acquisition.replay.iter_replay`. No contact happened in these
-  flights (SOURCES.md): every detected contact is a false positive.
-- **Simulated touches**: SITL survey (and slow-touch) sessions, whose wire bytes
-  (:meth:`Simulation.outputs`) go through the live ``MavlinkStreamDecoder`` /
-  ``NatNetStreamDecoder`` with the simulated time as receive time; the ground truth lists
-  touch / slow_touch / gust events.
+Flights (:class:`FlightSpec`): for each physics engine (``simple``: the bundled rigid-body model;
+``mujoco``: MuJoCo with the guarded airframe's real geometry), surveys whose touches draw their
+speed (0.2-1.2 m/s) and angle (up to 45 deg off the normal) from the seed, in gusty air (5-40 N
+for 50-300 ms, isolated and in clusters), plus free flights with hard braking and turns. Seeds
+are split: ``--train-seeds`` fit the evidence model (``--train``), ``--seeds`` are reported; the
+two sets must not overlap.
 
-Each trace becomes earth-frame acceleration (``contact.earth_acceleration``, batched), paired with
-the nearest attitude (max gap ``ATT_GAP_NS``) and an interpolated position (max gap
-``POSE_GAP_NS``). For each filter variant the trace is filtered once with the detector's own filter
-(``contact.filters.make_filter``), then a :class:`ContactDetector` with ``filter="none"`` runs per
-threshold on the filtered vectors. Only the samples that can change the contact state are fed: those
-with ``|a_f| >= release_ratio * a0`` and the first sample after each run of them (a sample below the
-release level outside a contact changes nothing but external observations, which the bench does not
-use), so events and contact observations equal those of a full run (tested).
+Metrics per engine (and pooled), per detector variant (``--variant``):
 
-Metrics per (filter, threshold): real-flight detected events per minute and fraction of samples
-above a0; on the SITL sessions, recall of ``touch`` events (a detection matches a truth event when
-their intervals overlap within ``tolerance_s``), the same for ``slow_touch`` (expected misses), the
-fraction of gusts detected and detected gusts per minute, other unmatched detections per minute,
-precision (detections on real contacts / all detections) and the localisation error of the
-contact point (paper's cylinder rule, r and h from ContactSettings) of matched touches: distance to
-the truth contact point and distance to the true surface, both at the event's peak observation.
+- touch recall per normal approach speed bin (a truth touch is found when a detected candidate
+  starts within [start - 0.1 s, end + 0.3 s], ``pipeline.scoring.match_events``);
+- gusts: share detected, share of detected gusts with ``p_false > 0.5``, share of all gusts that
+  did not become contacts (not detected, or ``p_false > 0.5``), per gust force bin; the same for
+  touches (``p_false > 0.5`` is a touch lost to the map's prior);
+- ROC AUC of ``p_false`` between detected gusts and detected touches;
+- placement: distance of each touch's first contact point to the true surface, median and p90;
+- real flights (no contact happened): candidates and contacts (``p_false <= 0.5``) per minute,
+  per flight and pooled.
 
 Data licence: the aggressive_flight data is CC BY 4.0, Hurwitz and Klein, "Quadrotor Dead Reckoning
 with Multiple Inertial Sensors"; the attribution is printed and written with every result.
@@ -35,17 +32,18 @@ with Multiple Inertial Sensors"; the attribution is printed and written with eve
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import math
 import os
-from collections.abc import Iterable, Sequence
+import subprocess
+import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from groundstation.contact import ContactDetector, ContactSettings, G
-from groundstation.contact.detector import LABEL_SURFACE
-from groundstation.contact.filters import make_filter
 from groundstation.errors import GroundstationError
 
 ATTRIBUTION = (
@@ -55,600 +53,121 @@ ATTRIBUTION = (
 )
 REAL_PATHS = ("Horizontal/path_1", "Horizontal/path_4", "Vertical/path_1")
 REAL_FILES = ("IMU_1.csv", "IMU_avg.csv")
-SCENES = ("wall", "pillar", "pier")
-PILOTS = ("survey", "slow_touch")
-# 0.3 .. 1.2 G in 0.1 G steps (the task's range), then coarser to show where recall falls off.
-DEFAULT_THRESHOLDS = tuple(round(0.3 + 0.1 * k, 2) for k in range(10)) + (1.5, 2.0, 2.5)
-DEFAULT_FILTERS = (
-    "moving_average:0.03",
-    "moving_average:0.05",
-    "moving_average:0.1",
-    "butterworth2:5",
-    "butterworth2:8",
-    "butterworth2:15",
-    "none",
-)
-ATT_GAP_NS = 50_000_000  # attitude farther than this from an IMU sample: sample dropped
-POSE_GAP_NS = 250_000_000  # bracketing poses farther apart than this: no position
-MAX_SIM_S = 600.0  # a session that never finishes its script stops here
-# The detector's filters output the raw first sample (moving average of one sample; Butterworth
-# started at steady state), so a trace can fire at its very first sample. Events that start this
-# close to a trace's start are counted separately ("warm-up"), and the real-flight peak used for
-# the threshold margin leaves this span out.
-WARMUP_S = 0.2
+ENGINES = ("simple", "mujoco")
+SPEED_BINS = ((0.0, 0.2), (0.2, 0.3), (0.3, 0.45), (0.45, 0.6), (0.6, 0.9), (0.9, 1.5))
+FORCE_BINS = ((0.0, 10.0), (10.0, 20.0), (20.0, 45.0))
+P_OPERATING = 0.5  # an event with p_false above this is treated as false by default
 
 
 class BenchDataError(GroundstationError):
-    """The bench cannot find or use its input (external data, filter spec, thresholds)."""
+    """The bench cannot find or use its input (external data, flights, seeds)."""
 
 
-# --- traces -------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class TruthEvent:
-    """A ground-truth event: ``kind`` (touch, slow_touch, gust, ground), times s, point m/None."""
-
-    kind: str
-    start_s: float
-    end_s: float
-    point: np.ndarray | None = None
+# --- flights ------------------------------------------------------------------------------------
 
 
 @dataclasses.dataclass(frozen=True)
-class Trace:
-    """One flight as the detector sees it.
+class FlightSpec:
+    """One simulated flight: ``groundstation sitl`` arguments, and how it is cached.
 
     Attributes
     ----------
-    name : str
-    source : {"real", "sitl"}
-    t_ns : (n,) int64, strictly increasing, station time ns
-    accel : (n, 3) float64, gravity-compensated acceleration, world ENU, m/s^2
-    position : (n, 3) float64, world metres; NaN rows where no pose was available
-    truth : tuple of TruthEvent (empty for the real flights)
-    scene : str or None
-        SITL scene name (for the surface distance of contact points).
-    dropped : int
-        IMU samples dropped (no attitude within ``ATT_GAP_NS``, non-finite, time not increasing).
+    engine : "simple" | "mujoco"
+    scene : str
+    pilot : str
+        Scripted pilot (``script:varied``, ``script:free``, ...).
+    seed : int
+    sitl_args : tuple of str
+        Further ``groundstation sitl`` options (gusts).
     """
 
-    name: str
-    source: str
-    t_ns: np.ndarray
-    accel: np.ndarray
-    position: np.ndarray
-    truth: tuple[TruthEvent, ...] = ()
-    scene: str | None = None
-    dropped: int = 0
+    engine: str
+    scene: str
+    pilot: str
+    seed: int
+    sitl_args: tuple[str, ...] = ()
 
     @property
-    def duration_s(self) -> float:
-        return float(self.t_ns[-1] - self.t_ns[0]) / 1e9 if self.t_ns.size > 1 else 0.0
+    def name(self) -> str:
+        pilot = self.pilot.split(":", 1)[-1]
+        h = hashlib.sha1(" ".join(self.argv()).encode()).hexdigest()[:8]
+        return f"{self.engine}_{self.scene}_{pilot}_s{self.seed}_{h}"
+
+    def argv(self) -> list[str]:
+        physics = [] if self.engine == "simple" else ["--physics", self.engine]
+        return [
+            "sitl", *physics, "--scene", self.scene, "--pilot", self.pilot,
+            "--seed", str(self.seed), *self.sitl_args, "--speed", "max",
+        ]  # fmt: skip
 
 
-def earth_accelerations(specific_force_frd: np.ndarray, q_frd_ned: np.ndarray) -> np.ndarray:
-    """Batched :func:`groundstation.contact.earth_acceleration`: a = R f + g, NED -> ENU.
+#: Gusty air of the evaluation flights: 5-40 N for 50-300 ms, a third of them starting clusters.
+GUSTS = (
+    "--gust-rate", "8", "--gust-force", "5:40", "--gust-duration", "0.05:0.3",
+    "--gust-cluster", "0.3", "--gust-cluster-size", "3:6",
+)  # fmt: skip
+SCENES = ("wall", "pillar", "pier")
+FREE_SCENES = ("wall", "pier")
 
-    Parameters
-    ----------
-    specific_force_frd : (n, 3) m/s^2, body FRD
-    q_frd_ned : (n, 4) (w, x, y, z), body FRD -> local NED
 
-    Returns
-    -------
-    (n, 3) float64, world ENU, m/s^2
+def flight_suite(
+    engines: Sequence[str], seeds: Sequence[int], quick: bool = False
+) -> list[FlightSpec]:
+    """The evaluation flights for ``seeds``: varied surveys of every scene in gusty air, and
+    contact-free flights with hard braking and turns."""
+    scenes = SCENES[:1] if quick else SCENES
+    out = []
+    for engine in engines:
+        for seed in seeds:
+            for scene in scenes:
+                out.append(FlightSpec(engine, scene, "script:varied", seed, GUSTS))
+            if not quick:
+                scene = FREE_SCENES[seed % len(FREE_SCENES)]
+                out.append(FlightSpec(engine, scene, "script:free", seed, GUSTS))
+    return out
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"0-4,10"`` -> [0, 1, 2, 3, 4, 10]."""
+    out: list[int] = []
+    try:
+        for part in text.split(","):
+            part = part.strip()
+            if not part:
+                continue
+            lo, sep, hi = part.partition("-")
+            out += list(range(int(lo), int(hi) + 1)) if sep else [int(lo)]
+    except ValueError:
+        raise BenchDataError(f"seeds {text!r}: use numbers and ranges, e.g. 0-4,10") from None
+    if not out:
+        raise BenchDataError(f"seeds {text!r}: no seed given")
+    return sorted(set(out))
+
+
+def generate(spec: FlightSpec, cache: Path) -> Path:
+    """The recording of ``spec`` (generated by ``groundstation sitl --record`` once, then cached).
+
+    Raises
+    ------
+    BenchDataError
+        The SITL failed (its stderr is in the message).
     """
-    from firmware_bridge.frames import ned_to_enu, quat_to_matrix
-
-    f = np.asarray(specific_force_frd, dtype=float)
-    a_ned = np.einsum("nij,nj->ni", quat_to_matrix(q_frd_ned), f) + np.array([0.0, 0.0, G])
-    return ned_to_enu(a_ned)
-
-
-def collect_samples(messages: Iterable[Any]) -> dict[str, np.ndarray]:
-    """Stack decoded ``samples.imu`` / ``samples.attitude`` / ``samples.pose`` messages.
-
-    ``messages`` are :class:`~groundstation.acquisition.decoders.Decoded` or bus envelopes
-    (anything with ``topic``, ``payload`` and ``arrays``); invalid poses are left out.
-
-    Returns
-    -------
-    dict with imu_t (n,), accel (n, 3), att_t (m,), q (m, 4), pose_t (k,), pos (k, 3)
-    """
-    cols: dict[str, list] = {k: [] for k in ("imu_t", "accel", "att_t", "q", "pose_t", "pos")}
-    for m in messages:
-        if m.topic == "samples.imu":
-            cols["imu_t"].append(int(m.payload["t_station_ns"]))
-            cols["accel"].append(m.arrays["accel_mps2"])
-        elif m.topic == "samples.attitude":
-            cols["att_t"].append(int(m.payload["t_station_ns"]))
-            cols["q"].append(m.arrays["q_wxyz"])
-        elif m.topic == "samples.pose" and m.payload.get("valid", True):
-            cols["pose_t"].append(int(m.payload["t_station_ns"]))
-            cols["pos"].append(m.arrays["position_m"])
-    shapes = {"accel": (0, 3), "q": (0, 4), "pos": (0, 3)}
-    return {
-        k: (np.asarray(v, dtype=np.int64) if k.endswith("_t") else np.asarray(v, float))
-        if v
-        else np.zeros(shapes.get(k, (0,)), np.int64 if k.endswith("_t") else float)
-        for k, v in cols.items()
-    }
-
-
-def build_trace(name: str, source: str, s: dict[str, np.ndarray], truth=(), scene=None) -> Trace:
-    """Pair IMU samples with the nearest attitude and an interpolated position (pure)."""
-    t, f = s["imu_t"], s["accel"]
-    if t.size == 0 or s["att_t"].size == 0:
-        raise BenchDataError(f"{name}: no IMU or attitude samples were decoded")
-    order = np.argsort(s["att_t"], kind="stable")
-    at, q = s["att_t"][order], s["q"][order]
-    k = np.clip(np.searchsorted(at, t), 1, at.size - 1) if at.size > 1 else np.zeros_like(t)
-    if at.size > 1:
-        k = np.where(np.abs(at[k - 1] - t) <= np.abs(at[k] - t), k - 1, k)
-    keep = (np.abs(at[k] - t) <= ATT_GAP_NS) & np.isfinite(f).all(axis=1)
-    keep &= np.concatenate([[True], np.diff(t) > 0])  # the detector rejects non-increasing time
-    t, f, k = t[keep], f[keep], k[keep]
-    if t.size < 2:
-        raise BenchDataError(f"{name}: fewer than 2 IMU samples have an attitude")
-    accel = earth_accelerations(f, q[k])
-    pos = np.full((t.size, 3), np.nan)
-    pt, pp = s["pose_t"], s["pos"]
-    if pt.size >= 2:
-        o = np.argsort(pt, kind="stable")
-        pt, pp = pt[o], pp[o]
-        j = np.searchsorted(pt, t)  # pt[j - 1] < t <= pt[j]
-        jj = np.clip(j, 1, pt.size - 1)
-        exact = pt[np.minimum(j, pt.size - 1)] == t
-        ok = exact | ((j > 0) & (j < pt.size) & ((pt[jj] - pt[jj - 1]) <= POSE_GAP_NS))
-        for ax in range(3):
-            pos[:, ax] = np.where(ok, np.interp(t, pt, pp[:, ax]), np.nan)
-    return Trace(name, source, t, accel, pos, tuple(truth), scene, int((~keep).sum()))
-
-
-# --- detection ----------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class FilterSpec:
-    """A named filter with its parameter: ``moving_average:0.05`` (window s), ``butterworth2:8``
-    (cutoff Hz) or ``none``; a bare name takes the parameter of the base settings."""
-
-    name: str
-    window_s: float
-    cutoff_hz: float
-
-    @classmethod
-    def parse(cls, text: str, base: ContactSettings) -> FilterSpec:
-        name, _, param = text.strip().partition(":")
-        try:
-            value = float(param) if param else None
-        except ValueError:
-            raise BenchDataError(f"filter {text!r}: parameter {param!r} is not a number") from None
-        if name not in ("moving_average", "butterworth2", "none"):
-            raise BenchDataError(
-                f"unknown filter {name!r} in {text!r}",
-                hint="use moving_average[:window_s], butterworth2[:cutoff_hz] or none",
-            )
-        if value is not None and not (math.isfinite(value) and value > 0):
-            raise BenchDataError(f"filter {text!r}: parameter must be a number > 0")
-        w = value if name == "moving_average" and value else base.window_s
-        c = value if name == "butterworth2" and value else base.cutoff_hz
-        return cls(name, w, c)
-
-    @property
-    def label(self) -> str:
-        if self.name == "moving_average":
-            return f"moving_average {self.window_s * 1e3:g} ms"
-        if self.name == "butterworth2":
-            return f"butterworth2 {self.cutoff_hz:g} Hz"
-        return "none"
-
-    def settings(self, base: ContactSettings, threshold_g: float) -> ContactSettings:
-        return dataclasses.replace(
-            base,
-            filter=self.name,
-            window_s=self.window_s,
-            cutoff_hz=self.cutoff_hz,
-            threshold_g=threshold_g,
+    cache.mkdir(parents=True, exist_ok=True)
+    path = cache / f"{spec.name}.mcap"
+    if path.is_file() and path.stat().st_size > 0:
+        return path
+    tmp = cache / f".{spec.name}.partial.mcap"
+    tmp.unlink(missing_ok=True)
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    cmd = [sys.executable, "-m", "groundstation.cli", *spec.argv(), "--record", str(tmp)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if proc.returncode != 0 or not tmp.is_file():
+        raise BenchDataError(
+            f"flight {spec.name}: groundstation sitl failed ({proc.returncode}): "
+            f"{proc.stderr.strip()[-800:]}"
         )
-
-
-def filter_trace(trace: Trace, spec: FilterSpec) -> np.ndarray:
-    """The detector's filter run over the trace: (n, 3) filtered acceleration, m/s^2."""
-    filt = make_filter(spec.name, spec.window_s, spec.cutoff_hz)
-    out = np.empty_like(trace.accel)
-    for i, (t, a) in enumerate(zip(trace.t_ns.tolist(), trace.accel, strict=True)):
-        out[i] = filt.update(t, a)
-    return out
-
-
-@dataclasses.dataclass(frozen=True)
-class Detection:
-    """One detected contact event: times s, peak |a_f| in G, contact point at the peak (m, NaN
-    when no pose)."""
-
-    start_s: float
-    end_s: float
-    peak_g: float
-    point: np.ndarray
-
-
-def detect(
-    trace: Trace, filtered: np.ndarray, settings: ContactSettings, *, reduced: bool = True
-) -> list[Detection]:
-    """Contact events of :class:`ContactDetector` on pre-filtered acceleration.
-
-    ``settings.filter`` is ignored (the detector runs with ``filter="none"`` on ``filtered``).
-    With ``reduced`` only the samples that can change the contact state are fed (module
-    docstring); events and contact observations are the same as with every sample.
-    """
-    s = dataclasses.replace(settings, filter="none")
-    det = ContactDetector(s)
-    g = np.linalg.norm(filtered, axis=1) / G
-    if reduced:
-        hot = g >= s.release_ratio * s.threshold_g
-        idx = np.flatnonzero(hot | np.concatenate([[False], hot[:-1]]))
-    else:
-        idx = np.arange(g.size)
-    peak: dict[int, tuple[float, np.ndarray]] = {}
-    t_list = trace.t_ns.tolist()
-    for i in idx.tolist():
-        pos = trace.position[i]
-        for ob in det.update(t_list[i], filtered[i], None if np.isnan(pos[0]) else pos):
-            if ob.label == LABEL_SURFACE and ob.accel_g > peak.get(ob.event_id, (-1.0,))[0]:
-                peak[ob.event_id] = (ob.accel_g, ob.position)
-    if det.in_contact:  # close the open event at the end of the trace (one zero sample)
-        det.update(t_list[-1] + 1, np.zeros(3))
-    nan3 = np.full(3, np.nan)
-    return [
-        Detection(e.t_start_ns / 1e9, e.t_end_ns / 1e9, e.peak_g, peak.get(e.id, (0.0, nan3))[1])
-        for e in det.events
-    ]
-
-
-def above_fraction(filtered: np.ndarray, threshold_g: float) -> float:
-    """Fraction of samples whose filtered |a| exceeds the threshold (G)."""
-    return float(np.mean(np.linalg.norm(filtered, axis=1) / G > threshold_g))
-
-
-def per_minute(count: int, duration_s: float) -> float:
-    """Events per minute of flight (NaN for an empty duration)."""
-    return count / (duration_s / 60.0) if duration_s > 0 else math.nan
-
-
-PRIORITY = ("touch", "slow_touch", "ground", "gust")  # a detection counts as the first it hits
-
-
-@dataclasses.dataclass
-class Match:
-    """Matching of detections to truth events (see :func:`match_events`).
-
-    Attributes
-    ----------
-    truth_hit : list of bool, per truth event: some detection overlaps it
-    truth_det : list of int, per truth event: index of the first overlapping detection or -1
-    det_kind : list of str, per detection: kind of the truth event it counts for, or "none"
-    """
-
-    truth_hit: list[bool]
-    truth_det: list[int]
-    det_kind: list[str]
-
-
-def match_events(
-    truth: Sequence[TruthEvent], detections: Sequence[Detection], tolerance_s: float = 0.15
-) -> Match:
-    """Match by time overlap: detection [a, b] and truth [c, d] match if a <= d + tol and
-    b >= c - tol. A detection overlapping several truth events counts for the kind first in
-    ``PRIORITY`` (a real contact wins over a gust)."""
-    hit, first = [False] * len(truth), [-1] * len(truth)
-    kinds = []
-    for j, d in enumerate(detections):
-        best = len(PRIORITY)
-        for i, e in enumerate(truth):
-            if d.start_s <= e.end_s + tolerance_s and d.end_s >= e.start_s - tolerance_s:
-                hit[i] = True
-                if first[i] < 0:
-                    first[i] = j
-                if e.kind in PRIORITY:
-                    best = min(best, PRIORITY.index(e.kind))
-        kinds.append(PRIORITY[best] if best < len(PRIORITY) else "none")
-    return Match(hit, first, kinds)
-
-
-# --- metrics and sweep --------------------------------------------------------------------------
-
-
-def _nanmedian(x: list[float]) -> float | None:
-    a = np.asarray([v for v in x if math.isfinite(v)])
-    return float(np.median(a)) if a.size else None
-
-
-def evaluate(
-    real: Sequence[tuple[Trace, np.ndarray]],
-    sitl: Sequence[tuple[Trace, np.ndarray]],
-    settings: ContactSettings,
-    tolerance_s: float = 0.15,
-    surface_distance=None,
-) -> dict[str, Any]:
-    """Metrics of one (filter, threshold) point over pre-filtered traces.
-
-    Parameters
-    ----------
-    real, sitl : sequences of (Trace, (n, 3) filtered acceleration)
-    settings : ContactSettings
-        Threshold, hysteresis, refractory time, r and h (its ``filter`` is ignored).
-    surface_distance : callable (scene name, (k, 3) points) -> (k,) metres, optional
-        Signed distance to the true structures; without it the surface error is not measured.
-
-    Returns
-    -------
-    dict (JSON-ready; rates per minute, fractions in [0, 1], distances in metres)
-    """
-    thr = settings.threshold_g
-    out: dict[str, Any] = {"real": {}, "real_paths": {}}
-    groups: dict[str, list[float]] = {}  # group -> [events, minutes, samples above, samples]
-    for trace, filt in real:
-        dets = detect(trace, filt, settings)
-        n_ev = len(dets)
-        t0 = trace.t_ns[0] / 1e9
-        warm = sum(d.start_s - t0 < WARMUP_S for d in dets)
-        above = above_fraction(filt, thr)
-        out["real_paths"][trace.name] = {
-            "events": n_ev,
-            "warmup_events": warm,
-            "minutes": trace.duration_s / 60,
-            "per_min": per_minute(n_ev, trace.duration_s),
-            "above": above,
-        }
-        for group in ("all", trace.name.rsplit("/", 1)[-1]):
-            acc = groups.setdefault(group, [0.0, 0.0, 0.0, 0.0, 0.0])
-            acc[0] += n_ev
-            acc[1] += trace.duration_s / 60
-            acc[2] += above * len(filt)
-            acc[3] += len(filt)
-            acc[4] += warm
-    for group, (ev, minutes, above_n, n, warm) in groups.items():
-        out["real"][group] = {
-            "warmup_events": int(warm),
-            "events": int(ev),
-            "minutes": minutes,
-            "per_min": ev / minutes if minutes else math.nan,
-            "per_min_after_warmup": (ev - warm) / minutes if minutes else math.nan,
-            "above": above_n / n if n else math.nan,
-        }
-    c = dict.fromkeys(
-        (
-            "touch",
-            "touch_hit",
-            "slow_touch",
-            "slow_touch_hit",
-            "gust",
-            "gust_hit",
-            "detections",
-            "det_contact",
-            "det_gust",
-            "det_none",
-        ),
-        0,
-    )
-    minutes, point_err, surf_err = 0.0, [], []
-    for trace, filt in sitl:
-        dets = detect(trace, filt, settings)
-        m = match_events(trace.truth, dets, tolerance_s)
-        minutes += trace.duration_s / 60
-        c["detections"] += len(dets)
-        for kind in m.det_kind:
-            key = {"gust": "det_gust", "none": "det_none"}.get(kind, "det_contact")
-            c[key] += 1
-        for e, hit, j in zip(trace.truth, m.truth_hit, m.truth_det, strict=True):
-            if e.kind in ("touch", "slow_touch", "gust"):
-                c[e.kind] += 1
-                c[e.kind + "_hit"] += int(hit)
-            if e.kind == "touch" and hit and e.point is not None:
-                p = dets[j].point
-                if np.isfinite(p).all():
-                    point_err.append(float(np.linalg.norm(p - e.point)))
-                    if surface_distance is not None and trace.scene:
-                        surf_err.append(abs(float(surface_distance(trace.scene, p[None])[0])))
-
-    def ratio(a: int, b: int) -> float:
-        return a / b if b else math.nan
-
-    out["sitl"] = {
-        **c,
-        "minutes": minutes,
-        "recall_touch": ratio(c["touch_hit"], c["touch"]),
-        "recall_slow_touch": ratio(c["slow_touch_hit"], c["slow_touch"]),
-        "gust_detected": ratio(c["gust_hit"], c["gust"]),
-        "gust_per_min": c["det_gust"] / minutes if minutes else math.nan,
-        "other_fp_per_min": c["det_none"] / minutes if minutes else math.nan,
-        "precision": ratio(c["det_contact"], c["detections"]),
-        "loc_point_median_m": _nanmedian(point_err),
-        "loc_point_p90_m": float(np.percentile(point_err, 90)) if point_err else None,
-        "loc_surface_median_m": _nanmedian(surf_err),
-        "loc_matched": len(point_err),
-    }
-    return out
-
-
-def peak_stats(
-    real: Sequence[tuple[Trace, np.ndarray]],
-    sitl: Sequence[tuple[Trace, np.ndarray]],
-    tolerance_s: float = 0.15,
-) -> dict[str, float | None]:
-    """Where the threshold can go for one filter: the largest filtered |a| (G) on the real
-    flights, and the peaks of filtered |a| around true touches and gusts (min / 5th percentile /
-    median)."""
-    real_max, warm_max = None, None
-    for trace, f in real:
-        g = np.linalg.norm(f, axis=1) / G
-        late = (trace.t_ns - trace.t_ns[0]) >= WARMUP_S * 1e9
-        if late.any():
-            real_max = max(real_max or 0.0, float(g[late].max()))
-        warm_max = max(warm_max or 0.0, float(g[~late].max()))
-    peaks: dict[str, list[float]] = {"touch": [], "gust": []}
-    for trace, filt in sitl:
-        g = np.linalg.norm(filt, axis=1) / G
-        t = trace.t_ns / 1e9
-        for e in trace.truth:
-            if e.kind in peaks:
-                w = (t >= e.start_s - tolerance_s) & (t <= e.end_s + tolerance_s)
-                if w.any():
-                    peaks[e.kind].append(float(g[w].max()))
-    out: dict[str, float | None] = {"real_max_g": real_max, "real_warmup_max_g": warm_max}
-    for kind, v in peaks.items():
-        a = np.asarray(v)
-        out[f"{kind}_min_g"] = float(a.min()) if a.size else None
-        out[f"{kind}_p05_g"] = float(np.percentile(a, 5)) if a.size else None
-        out[f"{kind}_median_g"] = float(np.median(a)) if a.size else None
-    return out
-
-
-def sweep(
-    real: Sequence[Trace],
-    sitl: Sequence[Trace],
-    specs: Sequence[FilterSpec],
-    thresholds: Sequence[float],
-    base: ContactSettings,
-    tolerance_s: float = 0.15,
-    surface_distance=None,
-    progress=None,
-) -> tuple[list[dict[str, Any]], dict[str, dict]]:
-    """Evaluate every (filter, threshold); each trace is filtered once per filter.
-
-    Returns
-    -------
-    rows : list of dict, one per point (``filter``, ``threshold_g``, ``default`` + metrics)
-    peaks : dict of filter label -> :func:`peak_stats`
-    """
-    rows, peaks = [], {}
-    for spec in specs:
-        fr = [(tr, filter_trace(tr, spec)) for tr in real]
-        fs = [(tr, filter_trace(tr, spec)) for tr in sitl]
-        peaks[spec.label] = peak_stats(fr, fs, tolerance_s)
-        for thr in thresholds:
-            s = spec.settings(base, float(thr))
-            row = {
-                "filter": spec.label,
-                "filter_name": spec.name,
-                "window_s": spec.window_s,
-                "cutoff_hz": spec.cutoff_hz,
-                "threshold_g": float(thr),
-                "default": is_default(s, base),
-            }
-            row.update(evaluate(fr, fs, s, tolerance_s, surface_distance))
-            row["margin"] = threshold_margin(peaks[spec.label], float(thr))
-            rows.append(row)
-            if progress is not None:
-                progress.update(1)
-    return rows, peaks
-
-
-def threshold_margin(peaks: dict, threshold_g: float) -> float | None:
-    """How safely a threshold sits between the real flights and the touches:
-    ``min(touch peak p5 / a0, a0 / real max)`` (> 1: above every real sample after warm-up and
-    below 95 % of touch peaks; the best threshold on a fine grid is their geometric mean)."""
-    lo, hi = peaks.get("real_max_g"), peaks.get("touch_p05_g")
-    if lo is None and hi is None:
-        return None
-    return min(hi / threshold_g if hi else math.inf, threshold_g / lo if lo else math.inf)
-
-
-def is_default(s: ContactSettings, base: ContactSettings) -> bool:
-    """Whether ``s`` has the base settings' filter, filter parameter and threshold."""
-    if s.filter != base.filter or not math.isclose(s.threshold_g, base.threshold_g):
-        return False
-    if s.filter == "moving_average":
-        return math.isclose(s.window_s, base.window_s)
-    if s.filter == "butterworth2":
-        return math.isclose(s.cutoff_hz, base.cutoff_hz)
-    return True
-
-
-def _key(row: dict) -> tuple:
-    """Ranking among points that keep the recall: fewest real false contacts/min after the
-    filter warm-up (a warm-up event is a filter start-up artefact, fixed in the filter rather
-    than by the threshold; it is reported), then best recall, then the widest
-    :func:`threshold_margin`, then fewest simulated false positives/min. (Gusts are not avoided
-    on purpose: the robust map flags them; their rate is reported.)"""
-    r, s = row["real"].get("all", {}), row["sitl"]
-    margin = row.get("margin")
-    return (
-        round(r.get("per_min_after_warmup", 0.0), 9),
-        -s["recall_touch"],
-        -(margin if margin is not None else 0.0),
-        s["gust_per_min"] + s["other_fp_per_min"],
-    )
-
-
-def recommend(rows: Sequence[dict], min_recall: float = 0.95) -> dict[str, Any]:
-    """The point with recall >= ``min_recall`` on touches and the fewest real false contacts/min
-    (ties: :func:`_key`), and whether the default is as good (same real rate, recall kept).
-
-    Returns
-    -------
-    dict with ``best`` (row or None), ``default`` (row or None), ``default_ok`` (bool) and
-    ``text`` (the recommendation, with numbers)
-    """
-    ok = [
-        r
-        for r in rows
-        if math.isfinite(r["sitl"]["recall_touch"]) and r["sitl"]["recall_touch"] >= min_recall
-    ]
-    default = next((r for r in rows if r["default"]), None)
-    best = min(ok, key=_key) if ok else None
-    if best is None:
-        text = f"no point keeps recall >= {min_recall:.2f} on simulated touches"
-        return {"best": None, "default": default, "default_ok": False, "text": text}
-    default_ok = (
-        default is not None
-        and default["sitl"]["recall_touch"] >= min_recall
-        and default["real"].get("all", {}).get("per_min_after_warmup", 0.0)
-        <= best["real"].get("all", {}).get("per_min_after_warmup", 0.0)
-    )
-    text = f"recommended: {_describe(best)}"
-    if default is None:
-        text += "\n(the default settings were not among the points measured)"
-    elif default_ok:
-        text += f"\nthe current default ({_describe(default)}) is as good on both measures: keep it"
-    else:
-        text += (
-            f"\nthe current default ({_describe(default)}) is NOT the best choice: "
-            f"change ContactSettings to filter={best['filter_name']!r}, "
-            + (
-                f"window_s={best['window_s']:g}, "
-                if best["filter_name"] == "moving_average"
-                else ""
-            )
-            + (
-                f"cutoff_hz={best['cutoff_hz']:g}, "
-                if best["filter_name"] == "butterworth2"
-                else ""
-            )
-            + f"threshold_g={best['threshold_g']:g}"
-        )
-    return {"best": best, "default": default, "default_ok": default_ok, "text": text}
-
-
-def _describe(row: dict) -> str:
-    r, s = row["real"].get("all", {}), row["sitl"]
-    real = (
-        f"{r['per_min']:.2f} false contacts/min on real flights ({r['warmup_events']} warm-up "
-        f"event(s); {r['per_min_after_warmup']:.2f}/min after warm-up), "
-        if r
-        else ""
-    )
-    return (
-        f"{row['filter']}, a0 = {row['threshold_g']:g} G: {real}"
-        f"touch recall {s['recall_touch']:.3f}, gusts detected {s['gust_detected']:.2f}, "
-        f"other false positives {s['other_fp_per_min']:.2f}/min, "
-        f"margin {_fmt(row.get('margin'))}"
-    )
-
-
-# --- inputs (I/O shells) ------------------------------------------------------------------------
+    tmp.rename(path)
+    return path
 
 
 def external_data_root() -> Path:
@@ -657,11 +176,9 @@ def external_data_root() -> Path:
     return Path(os.environ.get("GS_EXTERNAL_DATA", default))
 
 
-def load_real_flight(root: Path, path: str, file: str, workdir: Path) -> Trace:
-    """Import one aggressive_flight CSV through the CSV importer into an MCAP in ``workdir`` and
-    read it back through the replay decoders (what a replay of the import sees)."""
+def import_real_flight(root: Path, path: str, file: str, cache: Path) -> Path:
+    """An aggressive_flight CSV imported with the CSV importer (cached)."""
     from groundstation.acquisition.importers.csv_imu import import_csv
-    from groundstation.acquisition.replay import iter_replay
 
     src = root / "aggressive_flight" / path / file
     if not src.is_file():
@@ -669,170 +186,527 @@ def load_real_flight(root: Path, path: str, file: str, workdir: Path) -> Trace:
             f"real flight {str(src)!r} not found",
             hint="set GS_EXTERNAL_DATA to the folder holding aggressive_flight/, or --paths none",
         )
-    out = workdir / f"{path.replace('/', '_')}_{Path(file).stem}.mcap"
-    import_csv(src, out, created_by="groundstation bench detector")
-    return build_trace(f"{path}/{file}", "real", collect_samples(iter_replay(str(out))))
+    cache.mkdir(parents=True, exist_ok=True)
+    out = cache / f"real_{path.replace('/', '_')}_{Path(file).stem}.mcap"
+    if not out.is_file():
+        tmp = cache / f".{out.name}.partial"
+        tmp.unlink(missing_ok=True)
+        import_csv(src, tmp, created_by="groundstation bench detector")
+        tmp.rename(out)
+    return out
 
 
-def simulate_session(scene: str, pilot: str, seed: int, duration_s: float | None) -> Trace:
-    """Run a SITL session and decode its wire bytes with the live stream decoders.
+# --- labelling ----------------------------------------------------------------------------------
 
-    ``duration_s`` None runs until the scripted pilot is done (at most ``MAX_SIM_S``).
+
+@dataclasses.dataclass(frozen=True)
+class LabelledEvent:
+    """A detected candidate and what it really was.
+
+    Attributes
+    ----------
+    flight : str
+    engine : str ("real" for real flights)
+    kind : str
+        Truth kind it matched (touch, slow_touch, gust, ground) or "none".
+    p_false : float
+        NaN for detectors without evidence (every event then counts as a contact).
+    features : dict
+    rejected : bool
+    speed_mps : float
+        Normal approach speed of the matched touch (NaN otherwise).
+    angle_deg : float
+        Approach angle of the matched touch off the normal (NaN when unknown).
+    force_n : float
+        Peak force of the matched gust, N (NaN otherwise).
+    cluster : bool
+        The matched gust belongs to a cluster.
+    surface_m : float
+        Distance of the event's first contact point to the true surface (NaN: none placed).
+    point_m : float
+        Distance of that point to the truth contact point.
     """
-    from firmware_bridge.frames import AxisConvention
-    from firmware_bridge.sitl.runner import Simulation
-    from firmware_bridge.sitl.scene import load_scene
-    from groundstation.acquisition.decoders import MavlinkStreamDecoder, NatNetStreamDecoder
-    from groundstation.acquisition.settings import AcquisitionSettings
 
-    sim = Simulation(
-        load_scene(scene), f"script:{pilot}", seed=seed, duration=duration_s or MAX_SIM_S
-    )
-    a = AcquisitionSettings()
-    latency = int(a.mocap_latency_ms * 1e6)
-    mav = MavlinkStreamDecoder(a.timesync_window, int(a.timesync_max_rtt_ms * 1e6), latency)
-    nat = NatNetStreamDecoder((4, 1), AxisConvention(sim.mocap.up, a.quaternion_order), latency)
+    flight: str
+    engine: str
+    kind: str
+    p_false: float
+    features: dict
+    rejected: bool
+    speed_mps: float = math.nan
+    angle_deg: float = math.nan
+    force_n: float = math.nan
+    cluster: bool = False
+    surface_m: float = math.nan
+    point_m: float = math.nan
 
-    def decoded():
-        for item in sim.outputs():
-            yield from (mav if item.channel == "mavlink" else nat).feed(item.data, item.t_ns)
-            if duration_s is None and sim.vehicle.pilot.done:
-                break
+    @property
+    def false_by_evidence(self) -> bool:
+        """Treated as false at the operating point (rejected, or p_false above it)."""
+        return self.rejected or (math.isfinite(self.p_false) and self.p_false > P_OPERATING)
 
-    samples = collect_samples(decoded())
-    truth = [
-        TruthEvent(
-            e["kind"],
-            float(e["start"]),
-            float(e["end"]),
-            None if e["point"] is None else np.asarray(e["point"], float),
+
+@dataclasses.dataclass(frozen=True)
+class TruthItem:
+    """A truth event of a flight and whether any candidate matched it."""
+
+    flight: str
+    engine: str
+    kind: str
+    found: bool
+    speed_mps: float = math.nan
+    force_n: float = math.nan
+    cluster: bool = False
+
+
+def truth_speed(c: dict) -> float:
+    """Normal approach speed of a truth touch (m/s)."""
+    for key in ("normal_speed", "approach_speed", "impact_speed"):
+        if c.get(key) is not None:
+            return float(c[key])
+    return math.nan
+
+
+def truth_force(c: dict, truth: dict) -> float:
+    """Peak force of a truth gust (N)."""
+    for key in ("peak_force", "force_n", "peak_force_n"):
+        if c.get(key) is not None:
+            return float(c[key])
+    mass = float(truth.get("vehicle", {}).get("mass", 1.0))
+    return float(c.get("peak_accel", math.nan)) * mass
+
+
+def label_run(run: Any, engine: str) -> tuple[list[LabelledEvent], list[TruthItem]]:
+    """Match a :class:`~groundstation.pipeline.offline.DetectionRun`'s candidates to its truth.
+
+    Real flights (no truth) label every candidate ``none``.
+    """
+    from firmware_bridge.sitl.scene import parse_scene
+    from groundstation.pipeline.scoring import DetectedEvent, match_events
+
+    name = Path(run.log_path).stem
+    truth = run.truth or {}
+    contacts = truth.get("contacts", [])
+    offset = int(truth.get("clock", {}).get("station_offset_ns", 0))
+    scene = parse_scene(truth["scene"]) if truth.get("scene") else None
+    firsts = {}
+    for o in run.observations:
+        if o.label == 0 and o.event_id not in firsts:
+            firsts[o.event_id] = o.position
+    cands = [e for e in run.events if e.payload["state"] in ("begin", "rejected")]
+    matched = match_events(
+        [DetectedEvent(int(e.payload["id"]), int(e.header.source_ns)) for e in cands], truth
+    ) if contacts else {int(e.payload["id"]): None for e in cands}  # fmt: skip
+    events: list[LabelledEvent] = []
+    found: set[int] = set()
+    for e in cands:
+        eid = int(e.payload["id"])
+        m = matched[eid]
+        kind = "none" if m is None else m[1]
+        c = contacts[m[0]] if m is not None else {}
+        if m is not None:
+            found.add(m[0])
+        surf = pt = math.nan
+        x = firsts.get(eid)
+        if x is not None and scene is not None:
+            surf = float(abs(scene.signed_distance(np.asarray(x, float)[None, :])[0]))
+            if c.get("point") is not None:
+                pt = float(np.linalg.norm(np.asarray(x) - np.asarray(c["point"], float)))
+        events.append(
+            LabelledEvent(
+                flight=name,
+                engine=engine,
+                kind=kind,
+                p_false=float(e.payload.get("p_false", math.nan)),
+                features=dict(e.payload.get("features") or {}),
+                rejected=e.payload["state"] == "rejected",
+                speed_mps=truth_speed(c) if kind in ("touch", "slow_touch") else math.nan,
+                angle_deg=float(c.get("approach_angle_deg", math.nan) or math.nan),
+                force_n=truth_force(c, truth) if kind == "gust" else math.nan,
+                cluster=c.get("cluster_id") not in (None, -1) if kind == "gust" else False,
+                surface_m=surf,
+                point_m=pt,
+            )
         )
-        for e in sim.truth()["contacts"]
-    ]
-    return build_trace(f"{scene}/{pilot}/seed{seed}", "sitl", samples, truth, scene)
+    items = [
+        TruthItem(
+            name, engine, c["kind"], k in found,
+            truth_speed(c) if c["kind"] in ("touch", "slow_touch") else math.nan,
+            truth_force(c, truth) if c["kind"] == "gust" else math.nan,
+            c.get("cluster_id") not in (None, -1) if c["kind"] == "gust" else False,
+        )
+        for k, c in enumerate(contacts)
+    ]  # fmt: skip
+    del offset
+    return events, items
 
 
-def _surface_distance():
-    from firmware_bridge.sitl.scene import load_scene
+# --- the evidence model -------------------------------------------------------------------------
 
-    cache: dict[str, Any] = {}
 
-    def distance(scene: str, points: np.ndarray) -> np.ndarray:
-        if scene not in cache:
-            cache[scene] = load_scene(scene)
-        return cache[scene].signed_distance(points)
+def _inputs(ev: LabelledEvent) -> dict[str, float] | None:
+    from groundstation.contact.evidence import ImpulseFeatures, model_inputs
 
-    return distance
+    if not ev.features:
+        return None
+    try:
+        f = ImpulseFeatures(**{k: float(v) for k, v in ev.features.items()})
+    except TypeError:
+        return None
+    return model_inputs(f)
+
+
+MOCAP_INPUTS = (
+    "log_duration_ms", "log_dv_imu", "log_peak_g", "axial_fraction",
+    "approach", "rebound", "reversal", "agreement", "log_dv_per_approach",
+)  # fmt: skip
+IMU_INPUTS = ("log_duration_ms", "log_dv_imu", "log_peak_g", "axial_fraction")
+
+
+def fit_evidence_model(events: Sequence[LabelledEvent], provenance: str, c: float = 0.3) -> Any:
+    """Logistic models (with mocap, IMU only) fitted on labelled candidates: touches are true
+    (0), gusts and candidates that match nothing are false (1); slow touches and ground contacts
+    are left out (real contacts, but not the touches the map is built from). Classes are
+    weighted equally, so ``p_false`` is calibrated for a one-to-one prior."""
+    from sklearn.linear_model import LogisticRegression
+
+    from groundstation.contact.evidence import EvidenceModel, Logistic
+
+    rows = [(ev, _inputs(ev)) for ev in events if ev.kind in ("touch", "gust", "none")]
+    rows = [(ev, z) for ev, z in rows if z is not None]
+    blocks = {}
+    for key, names in (("with_mocap", MOCAP_INPUTS), ("imu_only", IMU_INPUTS)):
+        usable = [(ev, z) for ev, z in rows if all(k in z for k in names)]
+        y = np.array([0 if ev.kind == "touch" else 1 for ev, _ in usable])
+        if len(set(y.tolist())) < 2:
+            raise BenchDataError(f"cannot fit the evidence model ({key}): need touches and gusts")
+        X = np.array([[z[k] for k in names] for _, z in usable])
+        mu, sd = X.mean(axis=0), X.std(axis=0)
+        sd = np.where(sd > 1e-9, sd, 1.0)
+        clf = LogisticRegression(C=c, max_iter=1000, class_weight="balanced")
+        clf.fit((X - mu) / sd, y)
+        blocks[key] = Logistic(
+            tuple(names), tuple(mu.tolist()), tuple(sd.tolist()),
+            tuple(clf.coef_[0].tolist()), float(clf.intercept_[0]),
+        )  # fmt: skip
+    return EvidenceModel(blocks["with_mocap"], blocks["imu_only"], provenance)
+
+
+# --- metrics ------------------------------------------------------------------------------------
+
+
+def roc_auc(pos: Sequence[float], neg: Sequence[float]) -> float:
+    """P(score of a positive > score of a negative), ties half (Mann-Whitney)."""
+    a = np.asarray([v for v in pos if math.isfinite(v)], float)
+    b = np.asarray([v for v in neg if math.isfinite(v)], float)
+    if a.size == 0 or b.size == 0:
+        return math.nan
+    gt = (a[:, None] > b[None, :]).sum() + 0.5 * (a[:, None] == b[None, :]).sum()
+    return float(gt / (a.size * b.size))
+
+
+def _share(x: Sequence[bool]) -> float:
+    return float(np.mean(x)) if len(x) else math.nan
+
+
+def summarize(events: Sequence[LabelledEvent], items: Sequence[TruthItem]) -> dict[str, Any]:
+    """Every metric of the module docstring for one set of flights."""
+    touches = [e for e in events if e.kind == "touch"]
+    gusts = [e for e in events if e.kind == "gust"]
+    t_items = [i for i in items if i.kind in ("touch", "slow_touch")]
+    g_items = [i for i in items if i.kind == "gust"]
+    speed = {}
+    for lo, hi in SPEED_BINS:
+        sel = [i for i in t_items if lo <= i.speed_mps < hi]
+        tev = [e for e in touches + [e for e in events if e.kind == "slow_touch"]
+               if lo <= e.speed_mps < hi]  # fmt: skip
+        speed[f"{lo:g}-{hi:g}"] = {
+            "touches": len(sel),
+            "recall": _share([i.found for i in sel]),
+            "p_false_gt": _share([e.false_by_evidence for e in tev]),
+        }
+    force = {}
+    for lo, hi in FORCE_BINS:
+        sel = [i for i in g_items if lo <= i.force_n < hi]
+        gev = [e for e in gusts if lo <= e.force_n < hi]
+        force[f"{lo:g}-{hi:g} N"] = {
+            "gusts": len(sel),
+            "detected": _share([i.found for i in sel]),
+            "p_false_gt_of_detected": _share([e.false_by_evidence for e in gev]),
+        }
+    t_fast = [i for i in t_items if i.speed_mps >= 0.3]
+    surf = np.array([e.surface_m for e in touches if math.isfinite(e.surface_m)])
+    pt = np.array([e.point_m for e in touches if math.isfinite(e.point_m)])
+    n_g_detected = len(gusts)
+    n_g_false_detected = sum(e.false_by_evidence for e in gusts)
+    undetected = sum(not i.found for i in g_items)
+    return {
+        "truth_touches": len(t_items),
+        "truth_touches_ge_0.3": len(t_fast),
+        "truth_gusts": len(g_items),
+        "recall_ge_0.3": _share([i.found for i in t_fast]),
+        "speed_bins": speed,
+        "force_bins": force,
+        "detected_touches": len(touches),
+        "detected_gusts": n_g_detected,
+        "auc_p_false": roc_auc([e.p_false for e in gusts], [e.p_false for e in touches]),
+        "gusts_p_false_gt_of_detected": _share([e.false_by_evidence for e in gusts]),
+        "gusts_not_contacts_of_all": (
+            (n_g_false_detected + undetected) / len(g_items) if g_items else math.nan
+        ),
+        "touches_p_false_gt": _share([e.false_by_evidence for e in touches]),
+        "cluster_gusts_p_false_gt": _share([e.false_by_evidence for e in gusts if e.cluster]),
+        "unmatched_candidates": sum(e.kind == "none" for e in events),
+        "unmatched_contacts": sum(e.kind == "none" and not e.false_by_evidence for e in events),
+        "placement_surface_median_m": float(np.median(surf)) if surf.size else math.nan,
+        "placement_surface_p90_m": float(np.percentile(surf, 90)) if surf.size else math.nan,
+        "placement_point_median_m": float(np.median(pt)) if pt.size else math.nan,
+    }
+
+
+def real_flight_rates(runs: Sequence[tuple[str, float, list[LabelledEvent]]]) -> dict[str, Any]:
+    """Candidates and contacts (not false by evidence) per minute on contact-free flights."""
+    rows = []
+    for name, duration_s, evs in runs:
+        minutes = duration_s / 60.0
+        contacts = sum(not e.false_by_evidence for e in evs)
+        rows.append({
+            "flight": name, "minutes": minutes, "candidates": len(evs), "contacts": contacts,
+            "contacts_per_min": contacts / minutes if minutes > 0 else math.nan,
+        })  # fmt: skip
+    total = sum(r["minutes"] for r in rows)
+    n = sum(r["contacts"] for r in rows)
+    return {
+        "flights": rows,
+        "minutes": total,
+        "contacts": n,
+        "contacts_per_min": n / total if total > 0 else math.nan,
+        "candidates_per_min": sum(r["candidates"] for r in rows) / total if total else math.nan,
+        "max_contacts_per_flight": max((r["contacts"] for r in rows), default=0),
+    }
 
 
 # --- outputs ------------------------------------------------------------------------------------
 
 
-def _fmt(v: Any, spec: str = ".2f") -> str:
-    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
+def _f(v: Any, spec: str = ".2f") -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    return format(v, spec)
 
 
-def table_markdown(rows: Sequence[dict]) -> str:
-    """Markdown table of every point; the default row is marked (bold threshold, "default")."""
-    head = (
-        "| filter | a0 (G) | real FP/min | IMU_1 FP/min | IMU_avg FP/min | of which warm-up "
-        "| real % above "
-        "| touch recall | slow_touch recall | gusts detected | gust FP/min | other FP/min "
-        "| precision | loc. point med (m) | loc. surface med (m) | margin |"
-    )
-    lines = [head, "|" + "---|" * 16]
-    for r in rows:
-        real, s = r["real"], r["sitl"]
-        thr = f"**{r['threshold_g']:g}** (default)" if r["default"] else f"{r['threshold_g']:g}"
-        lines.append(
-            f"| {r['filter']} | {thr} | {_fmt(real.get('all', {}).get('per_min'))} "
-            f"| {_fmt(real.get('IMU_1.csv', {}).get('per_min'))} "
-            f"| {_fmt(real.get('IMU_avg.csv', {}).get('per_min'))} "
-            f"| {real.get('all', {}).get('warmup_events', '-')} "
-            f"| {_fmt(100 * real['all']['above'] if 'all' in real else None, '.3f')} "
-            f"| {_fmt(s['recall_touch'], '.3f')} | {_fmt(s['recall_slow_touch'], '.2f')} "
-            f"| {_fmt(s['gust_detected'])} | {_fmt(s['gust_per_min'])} "
-            f"| {_fmt(s['other_fp_per_min'])} | {_fmt(s['precision'], '.3f')} "
-            f"| {_fmt(s['loc_point_median_m'], '.3f')} | {_fmt(s['loc_surface_median_m'], '.3f')} "
-            f"| {_fmt(r.get('margin'))} |"
+def markdown(results: dict[str, Any]) -> str:
+    """The result tables (one block per detector variant)."""
+    out = []
+    for variant, res in results["variants"].items():
+        out.append(f"## Variant `{variant}`\n")
+        out.append(
+            "| engine | touches (>= 0.3 m/s) | recall >= 0.3 | gusts | AUC p_false | gusts "
+            "p>0.5 (detected) | gusts not contacts (all) | touches p>0.5 | cluster gusts "
+            "p>0.5 | placement median / p90 (m) |"
         )
-    return "\n".join(lines)
+        out.append("|---|---|---|---|---|---|---|---|---|---|")
+        for engine, s in res["engines"].items():
+            out.append(
+                f"| {engine} | {s['truth_touches']} ({s['truth_touches_ge_0.3']}) | "
+                f"{_f(s['recall_ge_0.3'], '.3f')} | {s['truth_gusts']} | "
+                f"{_f(s['auc_p_false'], '.3f')} | {_f(s['gusts_p_false_gt_of_detected'])} | "
+                f"{_f(s['gusts_not_contacts_of_all'])} | {_f(s['touches_p_false_gt'], '.3f')} | "
+                f"{_f(s['cluster_gusts_p_false_gt'])} | "
+                f"{_f(s['placement_surface_median_m'], '.3f')} / "
+                f"{_f(s['placement_surface_p90_m'], '.3f')} |"
+            )
+        out.append("\nTouch recall by normal approach speed (m/s):\n")
+        bins = list(next(iter(res["engines"].values()))["speed_bins"]) if res["engines"] else []
+        out.append("| engine | " + " | ".join(bins) + " |")
+        out.append("|---|" + "---|" * len(bins))
+        for engine, s in res["engines"].items():
+            cells = [
+                f"{_f(s['speed_bins'][b]['recall'])} ({s['speed_bins'][b]['touches']})"
+                for b in bins
+            ]
+            out.append(f"| {engine} | " + " | ".join(cells) + " |")
+        out.append("\nGusts by peak force: detected share; of those, p_false > 0.5:\n")
+        fb = list(next(iter(res["engines"].values()))["force_bins"]) if res["engines"] else []
+        out.append("| engine | " + " | ".join(fb) + " |")
+        out.append("|---|" + "---|" * len(fb))
+        for engine, s in res["engines"].items():
+            cells = [
+                f"{_f(s['force_bins'][b]['detected'])} / "
+                f"{_f(s['force_bins'][b]['p_false_gt_of_detected'])} "
+                f"({s['force_bins'][b]['gusts']})"
+                for b in fb
+            ]
+            out.append(f"| {engine} | " + " | ".join(cells) + " |")
+        real = res.get("real")
+        if real and real["flights"]:
+            out.append("\nReal contact-free flights (every contact is false):\n")
+            out.append("| flight | minutes | candidates | contacts | contacts/min |")
+            out.append("|---|---|---|---|---|")
+            for r in real["flights"]:
+                out.append(
+                    f"| {r['flight']} | {r['minutes']:.2f} | {r['candidates']} | "
+                    f"{r['contacts']} | {_f(r['contacts_per_min'])} |"
+                )
+            out.append(
+                f"| **pooled** | {real['minutes']:.2f} | - | {real['contacts']} | "
+                f"{_f(real['contacts_per_min'])} |"
+            )
+        out.append("")
+    return "\n".join(out)
 
 
-def peaks_markdown(peaks: dict[str, dict]) -> str:
-    """Per filter: largest filtered |a| on the real flights vs the peaks of true touches/gusts."""
-    head = (
-        "| filter | real max after warm-up (G) | real max in warm-up (G) | touch peak min (G) "
-        "| touch peak p5 (G) | touch peak median (G) | gust peak median (G) |"
-    )
-    lines = [head, "|---|---|---|---|---|---|---|"]
-    for label, p in peaks.items():
-        lines.append(
-            f"| {label} | {_fmt(p['real_max_g'])} | {_fmt(p['real_warmup_max_g'])} "
-            f"| {_fmt(p['touch_min_g'])} "
-            f"| {_fmt(p['touch_p05_g'])} | {_fmt(p['touch_median_g'])} "
-            f"| {_fmt(p['gust_median_g'])} |"
-        )
-    return "\n".join(lines)
+def events_csv(path: Path, events: Sequence[LabelledEvent]) -> None:
+    """Every labelled candidate, one row each, with its evidence features."""
+    import csv
+
+    keys = sorted({k for e in events for k in e.features})
+    cols = [f.name for f in dataclasses.fields(LabelledEvent) if f.name != "features"]
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow([*cols, *keys])
+        for e in events:
+            w.writerow([*(getattr(e, c) for c in cols), *(e.features.get(k, "") for k in keys)])
 
 
-def plot(rows: Sequence[dict], path: Path, min_recall: float) -> None:
-    """Threshold on x; real false contacts/min (left, symlog) and touch recall (right, dashed)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7.5, 4.2), dpi=100)
-    ax2 = ax.twinx()
-    labels = list(dict.fromkeys(r["filter"] for r in rows))
-    colors = plt.get_cmap("tab10")
-    for k, label in enumerate(labels):
-        rs = [r for r in rows if r["filter"] == label]
-        x = [r["threshold_g"] for r in rs]
-        fp = [r["real"].get("all", {}).get("per_min", math.nan) for r in rs]
-        rec = [r["sitl"]["recall_touch"] for r in rs]
-        ax.plot(x, fp, "-o", ms=3, color=colors(k), label=label)
-        ax2.plot(x, rec, "--", color=colors(k))
-        for r, xi, yi, ri in zip(rs, x, fp, rec, strict=True):
-            if r["default"]:
-                ax.plot([xi], [yi], "*", ms=12, color=colors(k))
-                ax2.plot([xi], [ri], "*", ms=12, color=colors(k))
-    ax.set_yscale("symlog", linthresh=0.5)
-    ax.set_xlabel("threshold a0 (G)")
-    ax.set_ylabel("false contacts / min, real flights (solid)")
-    ax2.set_ylabel("recall of simulated touches (dashed)")
-    ax2.set_ylim(0, 1.05)
-    ax2.axhline(min_recall, color="grey", lw=0.6, ls=":")
-    ax.legend(fontsize=7, loc="center left")
-    ax.set_title("contact detector: * = default; real data CC BY 4.0 Hurwitz & Klein", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-
-
-def _jsonable(x: Any) -> Any:
+def jsonable(x: Any) -> Any:
     if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
+        return {str(k): jsonable(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.integer | np.floating | np.bool_):
+        x = x.item()
     if isinstance(x, float) and not math.isfinite(x):
         return None
-    if isinstance(x, np.generic):
-        return _jsonable(x.item())
     return x
 
 
-# --- command ------------------------------------------------------------------------------------
+def write_json(path: Path, payload: Any) -> None:
+    path.write_text(json.dumps(jsonable(payload), indent=1, allow_nan=False))
 
 
-def _floats(text: str) -> list[float]:
-    try:
-        vals = [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
+# --- running ------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """A named detector configuration: ``NAME:key=value,...`` (``--set`` keys)."""
+
+    name: str
+    overrides: tuple[str, ...] = ()
+
+    @classmethod
+    def parse(cls, text: str) -> Variant:
+        name, _, rest = text.partition(":")
+        if not name.strip():
+            raise BenchDataError(f"variant {text!r}: give a name, e.g. low:contact.threshold_g=1")
+        return cls(name.strip(), tuple(v.strip() for v in rest.split(",") if v.strip()))
+
+
+#: The measured comparison: the impulse detector against the threshold detector at the old
+#: default (1.2 G) and at the paper's 0.6 G.
+DEFAULT_VARIANTS = (
+    Variant("impulse"),
+    Variant("threshold-1.2G", ("contact.detector=threshold", "contact.threshold_g=1.2")),
+    Variant("threshold-0.6G", ("contact.detector=threshold", "contact.threshold_g=0.6")),
+)
+
+#: The detector's vehicle body per engine, as a user describes their drone in ``[vehicle]``:
+#: the simple engine collides with the paper's cylinder, the MuJoCo airframe with its guards.
+VEHICLE = {
+    "simple": (),
+    "mujoco": ("vehicle.shape=guards",),
+    "real": (),
+}
+
+
+def detect_and_label(
+    log: str, engine: str, config_path: str | None, overrides: Sequence[str]
+) -> tuple[list[LabelledEvent], list[TruthItem], float]:
+    """Replay ``log`` through the production detector stage and label its candidates (runs in
+    a worker process; returns only small records)."""
+    from groundstation.config import load_config
+    from groundstation.pipeline.offline import detect_offline
+
+    cfg = load_config(config_path, [*VEHICLE.get(engine, ()), *overrides])
+    run = detect_offline(log, cfg)
+    events, items = label_run(run, engine)
+    return events, items, run.duration_s
+
+
+def _pool_map(fn, tasks: Sequence[tuple], jobs: int, desc: str) -> list:
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tqdm import tqdm
+
+    if jobs <= 1:
+        return [fn(*t) for t in tqdm(tasks, desc=desc, file=sys.stderr)]
+    with ProcessPoolExecutor(max_workers=jobs) as ex:
+        futs = [ex.submit(fn, *t) for t in tasks]
+        return [f.result() for f in tqdm(futs, desc=desc, file=sys.stderr)]
+
+
+def run_flights(
+    specs: Sequence[FlightSpec],
+    cache: Path,
+    variants: Sequence[Variant],
+    config_path: str | None,
+    jobs: int,
+) -> dict[str, tuple[list[LabelledEvent], list[TruthItem]]]:
+    """Generate (or reuse) every flight and label each variant's candidates on it.
+
+    Returns
+    -------
+    dict variant name -> (events, truth items) over all flights
+    """
+    logs = _pool_map(generate, [(s, cache) for s in specs], jobs, "flights")
+    tasks = [(str(log), s.engine, config_path, v.overrides) for v in variants for s, log in
+             zip(specs, logs, strict=True)]  # fmt: skip
+    done = _pool_map(detect_and_label, tasks, jobs, "detector")
+    out: dict[str, tuple[list, list]] = {v.name: ([], []) for v in variants}
+    k = 0
+    for v in variants:
+        for _ in specs:
+            ev, it, _dur = done[k]
+            out[v.name][0].extend(ev)
+            out[v.name][1].extend(it)
+            k += 1
+    return out
+
+
+def run_real(
+    paths: Sequence[str], files: Sequence[str], cache: Path, variants: Sequence[Variant],
+    config_path: str | None, jobs: int,
+) -> dict[str, dict[str, Any]]:  # fmt: skip
+    """Contact-free real flights: rates per variant."""
+    if not paths:
+        return {}
+    root = external_data_root()
+    if not (root / "aggressive_flight").is_dir():
         raise BenchDataError(
-            f"--thresholds {text!r}: expected numbers separated by commas"
-        ) from None
-    if not vals or not all(math.isfinite(v) and v > 0 for v in vals):
-        raise BenchDataError(f"--thresholds {text!r}: thresholds must be numbers > 0 (G)")
-    return vals
+            f"external data not found at {root / 'aggressive_flight'}",
+            hint="set GS_EXTERNAL_DATA to the folder holding aggressive_flight/ "
+            "(see ../shared/external_data/SOURCES.md), or pass --paths none",
+        )
+    logs = [import_real_flight(root, p, f, cache) for p in paths for f in files]
+    tasks = [(str(log), "real", config_path, v.overrides) for v in variants for log in logs]
+    done = _pool_map(detect_and_label, tasks, jobs, "real flights")
+    out = {}
+    for i, v in enumerate(variants):
+        rows = []
+        for j, log in enumerate(logs):
+            ev, _it, dur = done[i * len(logs) + j]
+            rows.append((Path(log).stem, dur, ev))
+        out[v.name] = real_flight_rates(rows)
+    return out
+
+
+def by_engine(
+    events: Sequence[LabelledEvent], items: Sequence[TruthItem], engines: Sequence[str]
+) -> dict[str, dict[str, Any]]:
+    """:func:`summarize` per engine and pooled."""
+    out = {e: summarize([x for x in events if x.engine == e], [i for i in items if i.engine == e])
+           for e in engines}  # fmt: skip
+    if len(engines) > 1:
+        out["pooled"] = summarize(events, items)
+    return out

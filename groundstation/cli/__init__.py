@@ -74,6 +74,11 @@ COMMANDS: dict[tuple[str, ...], Command] = {
         "joystick_calibrate",
         "walk through joystick calibration in the terminal and store it per device",
     ),
+    ("calibrate", "detector"): Command(
+        "calibrate",
+        "detector_calibrate",
+        "measure the contact detector's noise on a contact-free segment and write its settings",
+    ),
     ("bench", "paper2d"): Command(
         "bench",
         "paper2d",

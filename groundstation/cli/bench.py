@@ -12,7 +12,6 @@ import dataclasses
 import json
 import math
 import sys
-import tempfile
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -95,50 +94,38 @@ def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``groundstation bench detector``."""
     parser.add_argument("--out", default="results/bench_detector", help="output folder")
     parser.add_argument(
-        "--thresholds",
-        help="thresholds a0 in G, comma-separated "
-        "(default 0.3,...,1.2 by 0.1,1.5,2,2.5; --quick 0.4,0.6,0.8)",
+        "--engines", default="simple,mujoco", help="SITL physics engines (simple,mujoco)"
     )
     parser.add_argument(
-        "--filters",
-        help="filters: moving_average[:window_s], "
-        f"butterworth2[:cutoff_hz], none (default {','.join(detector_bench.DEFAULT_FILTERS)}; "
-        "--quick: moving_average,butterworth2,none with the configured "
-        "parameters)",
-    )
-    parser.add_argument("--seeds", type=int, help="SITL seeds per scene (default 3; --quick 1)")
-    parser.add_argument(
-        "--duration",
-        type=float,
-        help="SITL seconds per session (default: until the scripted pilot is done)",
+        "--seeds", default="100-103", help="seeds reported (never used for tuning), e.g. 100-103"
     )
     parser.add_argument(
-        "--scenes", help=f"SITL scenes (default {','.join(detector_bench.SCENES)}; --quick pillar)"
+        "--train-seeds", default="0-3", help="seeds the evidence model is fitted on (--train)"
     )
     parser.add_argument(
-        "--pilots", default=",".join(detector_bench.PILOTS), help="SITL pilot scripts"
+        "--train",
+        action="store_true",
+        help="fit the evidence model on --train-seeds first, write it to --out and report with it",
+    )
+    parser.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="NAME[:KEY=VALUE,...]",
+        help="detector variants compared on the same flights (default: impulse, "
+        "threshold-1.2G, threshold-0.6G)",
     )
     parser.add_argument(
         "--paths",
-        help="aggressive_flight paths, or 'none' "
-        f"(default {','.join(detector_bench.REAL_PATHS)}; --quick Horizontal/path_1)",
+        help=f"aggressive_flight paths, or 'none' (default {','.join(detector_bench.REAL_PATHS)})",
     )
     parser.add_argument(
-        "--files",
-        help=f"IMU files per path (default {','.join(detector_bench.REAL_FILES)}; "
-        "--quick IMU_1.csv)",
+        "--files", help=f"IMU files per path (default {','.join(detector_bench.REAL_FILES)})"
     )
-    parser.add_argument("--tolerance", type=float, default=0.15, help="event matching +-s")
-    parser.add_argument("--min-recall", type=float, default=0.95, help="recall to keep")
-    parser.add_argument("--quick", action="store_true", help="one path, one seed, few thresholds")
-    parser.add_argument("--config", help="TOML config (its [contact] is the base/default)")
-    parser.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="config override, e.g. contact.refractory_s=0.3",
-    )
+    parser.add_argument("--cache", default=None, help="flight cache (default OUT/flights)")
+    parser.add_argument("--jobs", type=int, default=2, help="worker processes")
+    parser.add_argument("--quick", action="store_true", help="one scene per seed, no free flights")
+    parser.add_argument("--config", help="TOML config (the base of every variant)")
 
 
 def _csv_list(text: str | None, default: Sequence[str]) -> list[str]:
@@ -146,156 +133,82 @@ def _csv_list(text: str | None, default: Sequence[str]) -> list[str]:
 
 
 def run_detector(args: argparse.Namespace) -> int:
-    """Run the sweep, print the table and recommendation, write PNG / md / json into ``--out``."""
-    from tqdm import tqdm
-
-    from groundstation.config import load_config
-
-    q = bool(args.quick)
-    base = load_config(args.config, args.set).contact
-    thresholds = (
-        detector_bench._floats(args.thresholds)
-        if args.thresholds
-        else ([0.4, 0.6, 0.8] if q else list(detector_bench.DEFAULT_THRESHOLDS))
-    )
-    # The configured default is always measured, so the table can mark it.
-    thresholds = sorted(set(thresholds) | {base.threshold_g})
-    quick_filters = ("moving_average", "butterworth2", "none")
-    filters = _csv_list(args.filters, quick_filters if q else detector_bench.DEFAULT_FILTERS)
-    specs = [detector_bench.FilterSpec.parse(f, base) for f in filters]
-    seeds = args.seeds if args.seeds is not None else (1 if q else 3)
-    scenes = _csv_list(args.scenes, ("pillar",) if q else detector_bench.SCENES)
-    pilots = _csv_list(args.pilots, detector_bench.PILOTS)
-    paths = _csv_list(args.paths, ("Horizontal/path_1",) if q else detector_bench.REAL_PATHS)
-    files = _csv_list(args.files, ("IMU_1.csv",) if q else detector_bench.REAL_FILES)
-    if paths == ["none"]:
-        paths = []
-    if seeds < 1:
-        raise detector_bench.BenchDataError(f"--seeds {seeds}: need at least 1")
+    """Generate the flights, (fit the evidence model), run every variant, write the tables."""
+    db = detector_bench
+    engines = _csv_list(args.engines, db.ENGINES)
+    unknown = sorted(set(engines) - set(db.ENGINES))
+    if unknown:
+        raise db.BenchDataError(f"unknown engines {unknown}; use {','.join(db.ENGINES)}")
+    seeds = db.parse_seeds(args.seeds)
+    train_seeds = db.parse_seeds(args.train_seeds)
+    if args.train and set(seeds) & set(train_seeds):
+        raise db.BenchDataError(
+            f"--seeds and --train-seeds overlap in {sorted(set(seeds) & set(train_seeds))}",
+            hint="report on seeds that were not used to fit the model",
+        )
+    variants = [db.Variant.parse(v) for v in args.variant] or list(db.DEFAULT_VARIANTS)
+    paths = _csv_list(args.paths, db.REAL_PATHS)
+    paths = [] if paths == ["none"] else paths
+    files = _csv_list(args.files, db.REAL_FILES)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    err = sys.stderr
-
-    real: list[detector_bench.Trace] = []
-    if paths:
-        root = detector_bench.external_data_root()
-        if not (root / "aggressive_flight").is_dir():
-            raise detector_bench.BenchDataError(
-                f"external data not found at {root / 'aggressive_flight'}",
-                hint="set GS_EXTERNAL_DATA to the folder holding aggressive_flight/ "
-                "(see ../shared/external_data/SOURCES.md), or pass --paths none",
-            )
-        print(detector_bench.ATTRIBUTION, file=err)
-        with tempfile.TemporaryDirectory(prefix="bench_detector_") as tmp:
-            jobs = [(p, f) for p in paths for f in files]
-            for p, f in tqdm(jobs, desc="real flights (import + replay)", file=err):
-                real.append(detector_bench.load_real_flight(root, p, f, Path(tmp)))
-    else:
-        print("real flights skipped (--paths none): no false-contact rate measured", file=err)
-    sessions = [(s, p, k) for s in scenes for p in pilots for k in range(seeds)]
-    sitl = [
-        detector_bench.simulate_session(s, p, k, args.duration)
-        for s, p, k in tqdm(sessions, desc="SITL sessions", file=err)
-    ]
-    with tqdm(total=len(specs) * len(thresholds), desc="sweep", file=err) as bar:
-        rows, peaks = detector_bench.sweep(
-            real,
-            sitl,
-            specs,
-            thresholds,
-            base,
-            args.tolerance,
-            detector_bench._surface_distance(),
-            bar,
+    cache = Path(args.cache) if args.cache else out / "flights"
+    model_note = "bundled evidence model"
+    if args.train:
+        specs = db.flight_suite(engines, train_seeds, args.quick)
+        runs = db.run_flights(specs, cache, [db.Variant("train")], args.config, args.jobs)
+        events, _ = runs["train"]
+        provenance = (
+            f"groundstation bench detector --train: engines {','.join(engines)}, train seeds "
+            f"{args.train_seeds}, {len(specs)} flights, "
+            f"{sum(e.kind == 'touch' for e in events)} touches, "
+            f"{sum(e.kind == 'gust' for e in events)} gusts, "
+            f"{sum(e.kind == 'none' for e in events)} unmatched candidates"
         )
-    rec = detector_bench.recommend(rows, args.min_recall)
-
-    real_min = sum(t.duration_s for t in real) / 60
-    sitl_min = sum(t.duration_s for t in sitl) / 60
-    n_touch = sum(e.kind == "touch" for t in sitl for e in t.truth)
-    n_slow = sum(e.kind == "slow_touch" for t in sitl for e in t.truth)
-    n_gust = sum(e.kind == "gust" for t in sitl for e in t.truth)
-    command = "groundstation bench detector " + " ".join(sys.argv[3:] if len(sys.argv) > 3 else [])
-    summary = (
-        f"real flights: {len(real)} traces, {real_min:.2f} min ({', '.join(t.name for t in real)})"
-        f"\nSITL: {len(sitl)} sessions ({','.join(scenes)} x {','.join(pilots)} x {seeds} seeds), "
-        f"{sitl_min:.2f} min, {n_touch} touches, {n_slow} slow touches, {n_gust} gusts"
-        f"\nbase settings: {base}\nmatching tolerance +-{args.tolerance} s, "
-        f"minimum recall {args.min_recall}"
-    )
-    md = "\n\n".join(
-        [
-            "# Contact detector: false contacts on real flights vs recall on simulated touches",
-            f"Command: `{command.strip()}`",
-            summary.replace("\n", "  \n"),
-            "FP/min: detected contact events per minute of real (contact-free) flight; % above: "
-            "samples whose filtered |a| exceeds a0. Recall / gusts: fraction of SITL truth events "
-            f"overlapped by a detection (+-{args.tolerance} s). Localisation: paper's cylinder "
-            "rule at the event's peak, vs the truth contact point and vs the true surface. "
-            f"Warm-up: events within {detector_bench.WARMUP_S} s of a trace's start (the filters "
-            "output the raw first sample). Margin: min(touch peak p5 / a0, a0 / real max after "
-            "warm-up).",
-            detector_bench.table_markdown(rows),
-            "## Filtered |a| peaks per filter",
-            detector_bench.peaks_markdown(peaks),
-            "## Recommendation",
-            rec["text"].replace("\n", "  \n"),
-            f"Attribution: {detector_bench.ATTRIBUTION}",
+        model = db.fit_evidence_model(events, provenance)
+        model_path = out / "evidence_model.json"
+        db.write_json(model_path, model.to_dict())
+        model_note = f"model fitted on train seeds {args.train_seeds}: {model_path}"
+        variants = [
+            db.Variant(v.name, (f"contact.evidence_model={model_path}", *v.overrides))
+            for v in variants
         ]
-    )
-    (out / "detector.md").write_text(md + "\n")
-    detector_bench.plot(rows, out / "detector.png", args.min_recall)
-    payload = {
-        "attribution": detector_bench.ATTRIBUTION,
-        "command": command.strip(),
-        "base_settings": dataclasses.asdict(base),
-        "thresholds": thresholds,
-        "filters": [s.label for s in specs],
-        "real_traces": [
-            {
-                "name": t.name,
-                "minutes": t.duration_s / 60,
-                "samples": int(t.t_ns.size),
-                "dropped": t.dropped,
+        print(f"wrote {model_path} ({provenance})", file=sys.stderr)
+    specs = db.flight_suite(engines, seeds, args.quick)
+    labelled = db.run_flights(specs, cache, variants, args.config, args.jobs)
+    real = db.run_real(paths, files, cache, variants, args.config, args.jobs)
+    if paths:
+        print(db.ATTRIBUTION, file=sys.stderr)
+    results = {
+        "command": "groundstation bench detector " + " ".join(sys.argv[3:]),
+        "seeds": seeds,
+        "train_seeds": train_seeds if args.train else None,
+        "evidence_model": model_note,
+        "flights": [s.name for s in specs],
+        "variants": {
+            v.name: {
+                "overrides": list(v.overrides),
+                "engines": db.by_engine(*labelled[v.name], engines),
+                "real": real.get(v.name),
             }
-            for t in real
-        ],
-        "sitl_sessions": [
-            {
-                "name": t.name,
-                "minutes": t.duration_s / 60,
-                "dropped": t.dropped,
-                "truth": {
-                    k: sum(e.kind == k for e in t.truth)
-                    for k in ("touch", "slow_touch", "gust", "ground")
-                },
-            }
-            for t in sitl
-        ],
-        "points": rows,
-        "peaks": peaks,
-        "recommendation": {
-            "text": rec["text"],
-            "default_ok": rec["default_ok"],
-            "best": None
-            if rec["best"] is None
-            else {
-                k: rec["best"][k]
-                for k in ("filter", "filter_name", "window_s", "cutoff_hz", "threshold_g")
-            },
+            for v in variants
         },
+        "attribution": db.ATTRIBUTION,
     }
-    (out / "results.json").write_text(
-        json.dumps(detector_bench._jsonable(payload), indent=1, allow_nan=False)
-    )
-    print(detector_bench.table_markdown(rows))
-    print()
-    print(detector_bench.peaks_markdown(peaks))
-    print()
-    print(summary)
-    print(rec["text"])
-    print(detector_bench.ATTRIBUTION)
-    print(f"wrote {out / 'detector.png'}, {out / 'detector.md'}, {out / 'results.json'}")
+    md = "\n".join([
+        "# Contact detector on both physics engines and real flights",
+        f"Command: `{results['command'].strip()}`  ",
+        f"Reported seeds {args.seeds}; {model_note}; {len(specs)} simulated flights.",
+        "",
+        db.markdown(results),
+        f"Attribution: {db.ATTRIBUTION}",
+    ])  # fmt: skip
+    (out / "detector.md").write_text(md + "\n")
+    db.write_json(out / "results.json", results)
+    for v in variants:
+        db.events_csv(out / f"events_{v.name}.csv", labelled[v.name][0])
+    print(md)
+    print(f"wrote {out / 'detector.md'}, {out / 'results.json'}")
     return 0
 
 

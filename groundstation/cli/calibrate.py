@@ -1,4 +1,11 @@
-"""``groundstation joystick calibrate``: walk the pilot through calibration in the terminal.
+"""Calibration commands: ``groundstation joystick calibrate`` and ``groundstation calibrate
+detector``.
+
+``groundstation calibrate detector LOG [--segment S:E] [--out FILE]`` measures the impulse
+detector's noise on a contact-free stretch of a recording (``contact/calibration.py``) and writes
+a ``[contact]`` table that ``--config`` accepts, with the measured margins as comments.
+
+``groundstation joystick calibrate`` walks the pilot through calibration in the terminal.
 
 Steps (each ends when the pilot presses Enter; the device is read on its own thread meanwhile):
 
@@ -224,4 +231,87 @@ def run_joystick_calibrate(
                 return 1
         path = save_calibration(args.out, cal)
         print(f"saved calibration of {cal.name!r} to {path}", file=stdout)
+    return 0
+
+
+# ---------------------------------------------------------------- calibrate detector
+
+
+def _segment(text: str) -> tuple[float, float]:
+    lo, sep, hi = text.partition(":")
+    try:
+        a = float(lo) if lo.strip() else 0.0
+        b = float(hi) if sep and hi.strip() else float("inf")
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected START:END seconds") from None
+    if not (a >= 0 and b > a):
+        raise argparse.ArgumentTypeError(f"{text!r}: need 0 <= START < END")
+    return a, b
+
+
+def add_detector_calibrate_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``groundstation calibrate detector``."""
+    parser.add_argument("log", help="recording (.mcap) with a contact-free segment")
+    parser.add_argument(
+        "--segment",
+        type=_segment,
+        default=(0.0, float("inf")),
+        metavar="S:E",
+        help="contact-free segment, seconds of log time from its start (default: all of it)",
+    )
+    parser.add_argument("--out", default=None, help="TOML file to write (default: print it)")
+    parser.add_argument(
+        "--margin", type=float, default=1.35, help="trigger level over the largest residual seen"
+    )
+    parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    parser.add_argument("--config", default=None, help="TOML configuration (window lengths)")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a setting"
+    )
+
+
+def run_detector_calibrate(args: argparse.Namespace) -> int:
+    """Read the segment's accelerometer samples, calibrate, write or print the TOML."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from groundstation.acquisition.reader import open_recording
+    from groundstation.acquisition.replay import iter_replay
+    from groundstation.config import load_config
+    from groundstation.contact.calibration import calibrate
+    from groundstation.errors import InputDataError
+
+    cfg = load_config(args.config, args.set)
+    out = Path(args.out) if args.out else None
+    if out is not None and out.exists() and not args.force:
+        raise InputDataError(f"{out} exists", hint="pass --force to replace it")
+    with open_recording(args.log) as rec:
+        start = int(rec.summary.start_ns or 0)
+    lo, hi = args.segment
+    t, f = [], []
+    for env in iter_replay(args.log, settings=cfg.acquisition):
+        if env.topic != "samples.imu":
+            continue
+        rel = (env.header.recv_ns - start) / 1e9
+        if rel < lo:
+            continue
+        if rel > hi:
+            break
+        ts = int(env.payload.get("t_station_ns", env.header.source_ns))
+        if t and ts <= t[-1]:
+            continue
+        t.append(ts)
+        f.append(np.asarray(env.arrays["accel_mps2"], dtype=np.float64))
+    if not t:
+        raise InputDataError(f"{args.log}: no IMU samples in the segment {lo:g}:{hi:g} s")
+    cal = calibrate(np.array(t), np.array(f), cfg.contact, margin=args.margin)
+    seg = f"{lo:g}:{'end' if hi == float('inf') else f'{hi:g}'}"
+    text = cal.to_toml(f"{args.log} --segment {seg}")
+    if out is None:
+        print(text, end="")
+    else:
+        out.write_text(text)
+        print(text, end="", file=sys.stderr)
+        print(f"wrote {out} (use it with --config {out})", file=sys.stderr)
     return 0

@@ -60,8 +60,7 @@ def _progress_offline(quiet: bool):
     def show(done: float, total: float, refits: int, contacts: int) -> None:
         end = "\n" if done >= total else "\r"
         print(
-            f"replay: {done:6.1f}/{total:.1f} s of log, {contacts} contacts, "
-            f"{refits} refits",
+            f"replay: {done:6.1f}/{total:.1f} s of log, {contacts} contacts, {refits} refits",
             end=end,
             file=sys.stderr,
             flush=True,

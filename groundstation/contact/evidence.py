@@ -8,6 +8,8 @@ A touch and a gust leave different traces (issue 12, DESIGN.md §7):
   normal is negative, ``approach_mps`` > 0) and after it it **rebounds** (positive,
   ``rebound_mps`` > 0: the normal velocity reverses within 50-150 ms); a gust pushes the drone
   along its direction whether it was moving that way or not;
+- a touch's impulse follows from the approach speed (``dv = (1 + e) v`` with a restitution
+  ``e`` of 0.2-0.7), a gust's does not (``log_dv_per_approach``);
 - a real external force moves the drone: the mocap velocity change across the impulse agrees
   with the impulse the IMU measured (``agreement`` ~ 1), while vibration bursts and sensor
   glitches integrate to little and move nothing;
@@ -96,6 +98,7 @@ def model_inputs(f: ImpulseFeatures) -> dict[str, float]:
             rebound=float(np.clip(f.rebound_mps, -1.0, 2.0)),
             reversal=float(np.clip(min(f.approach_mps, f.rebound_mps), -1.0, 1.0)),
             agreement=float(np.clip(f.agreement, -1.0, 3.0)) if math.isfinite(f.agreement) else 0.0,
+            log_dv_per_approach=math.log(max(f.dv_imu_mps, 1e-3) / max(f.approach_mps, 0.05)),
         )
     return z
 

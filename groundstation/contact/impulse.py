@@ -164,6 +164,8 @@ class ImpulseDetector:
     batch : int
         Decide samples in batches of at least this many (latency against per-call overhead;
         the result does not depend on it).
+    keep_residuals : bool
+        Keep the lateral and axial residual of every sample (``residuals``).
     """
 
     def __init__(
@@ -173,6 +175,7 @@ class ImpulseDetector:
         model: EvidenceModel | None = None,
         first_id: int = 0,
         batch: int = 1,
+        keep_residuals: bool = False,
     ) -> None:
         self.settings = s = settings or ContactSettings()
         self.vehicle = vehicle or VehicleSettings()
@@ -183,6 +186,11 @@ class ImpulseDetector:
         self._gap = int(round(s.baseline_gap_s * 1e9))
         self._B = int(round(s.baseline_s * 1e9))
         self._batch = max(1, int(batch))
+        #: (t_ns, lateral, axial) arrays of every decided block when ``keep_residuals`` (m/s^2;
+        #: warm-up samples left out): what ``groundstation calibrate detector`` measures.
+        self.residuals: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = (
+            [] if keep_residuals else None
+        )
         self._thr = np.array([s.lateral_threshold_g, s.axial_threshold_g]) * G
         self._c = _Columns()
         self._m_done = 0  # absolute index: m and sm computed below this
@@ -336,6 +344,9 @@ class ImpulseDetector:
         base, nb = self._baselines(t)
         score = self._score(c.m[idx] - base)
         warm = (t - c.seg[idx] >= self._gap + self._B + self._w) & (nb > 0)
+        if self.residuals is not None:
+            lat, ax = self._split(c.m[idx] - base)
+            self.residuals.append((t[warm].copy(), lat[warm], ax[warm]))
         max_ns = int(s.max_event_s * 1e9)
         pos = c.p[idx].tolist()
         out: list[Observation] = []

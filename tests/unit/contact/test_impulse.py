@@ -1,0 +1,235 @@
+"""The impulse detector on synthetic flights whose physics is known exactly.
+
+A synthetic flight: a level vehicle (attitude FRD == NED turned by ``yaw``) at 200 Hz with
+white accelerometer noise, moving at constant velocity except where an impulse (half-sine
+specific force along a world direction) changes its velocity by exactly the impulse. Positions are
+the integral of that motion, so mocap approach and rebound speeds are exact too.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from firmware_bridge.frames import quat_from_axis_angle
+from groundstation.contact.detector import LABEL_INSIDE, LABEL_OUTSIDE, LABEL_SURFACE
+from groundstation.contact.evidence import (
+    EvidenceModel,
+    ImpulseFeatures,
+    Logistic,
+    model_inputs,
+)
+from groundstation.contact.impulse import ImpulseDetector
+from groundstation.contact.settings import ContactSettings, G
+from groundstation.contact.vehicle import VehicleSettings, contact_offset
+from groundstation.errors import ConfigError
+
+RATE = 200
+ENU_TO_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+def flight(duration=6.0, impulses=(), v0=(0.0, 0.0, 0.0), noise=0.3, yaw=0.0, seed=0,
+           thrust=None):  # fmt: skip
+    """(t_ns, f_frd, q_frd_ned, pos_enu) of a synthetic flight.
+
+    impulses: (t0 s, duration s, dv m/s, unit direction ENU); v0: velocity ENU before the first.
+    thrust(t) -> extra specific force along the thrust axis (m/s^2), for manoeuvres.
+    """
+    n = int(duration * RATE)
+    t = np.arange(n) / RATE
+    rng = np.random.default_rng(seed)
+    q = quat_from_axis_angle([0.0, 0.0, 1.0], yaw)  # FRD -> NED: yaw about down
+    R_ned_frd = np.array(
+        [[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0], [0, 0, 1]]
+    )
+    a_world = np.zeros((n, 3))
+    for t0, T, dv, d in impulses:
+        on = (t >= t0) & (t < t0 + T)
+        shape = np.sin(math.pi * (t[on] - t0) / T) * (math.pi / (2 * T)) * dv
+        a_world[on] += shape[:, None] * np.asarray(d, float)
+    v = np.asarray(v0, float) + np.cumsum(a_world, axis=0) / RATE
+    pos = np.array([2.0, 1.0, 1.0]) + np.cumsum(v, axis=0) / RATE
+    a_frd = (ENU_TO_NED @ a_world.T).T @ R_ned_frd  # world ENU -> NED -> body FRD
+    f = a_frd + np.array([0.0, 0.0, -G]) + rng.normal(0.0, noise, (n, 3))
+    if thrust is not None:
+        f[:, 2] -= np.array([thrust(x) for x in t])
+    t_ns = (1_000_000_000 + t * 1e9).astype(np.int64)
+    return t_ns, f, np.tile(q, (n, 1)), pos
+
+
+def run(data, settings=None, vehicle=None, batch=1, pose=True, model=None):
+    t, f, q, pos = data
+    det = ImpulseDetector(settings or ContactSettings(), vehicle or VehicleSettings(),
+                          model=model, batch=batch)  # fmt: skip
+    obs = []
+    for i in range(t.size):
+        obs += det.update(int(t[i]), f[i], q[i], pos[i] if pose else None)
+    obs += det.flush()
+    return det, obs
+
+
+WALL = np.array([1.0, 0.0, 0.0])  # outward normal of a wall facing +x
+
+
+def touch(t0=3.0, speed=0.3, e=0.4, T=0.022, normal=WALL, angle=0.0):
+    """Approach at ``speed`` along -normal (tilted by ``angle`` in the horizontal plane), bounce
+    with restitution ``e``: the impulse along the normal is (1 + e) * normal speed."""
+    n = np.asarray(normal, float)
+    side = np.cross(n, [0.0, 0.0, 1.0])
+    if np.linalg.norm(side) < 1e-9:
+        side = np.array([0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    v0 = speed * (-math.cos(angle) * n + math.sin(angle) * side)
+    vn = speed * math.cos(angle)
+    return dict(impulses=[(t0, T, (1 + e) * vn, n)], v0=v0)
+
+
+def test_a_slow_touch_is_one_event_with_its_normal_onset_and_rebound():
+    det, obs = run(flight(**touch(speed=0.3)))
+    assert len(det.events) == 1
+    ev = det.events[0]
+    assert ev.normal @ WALL > 0.99
+    assert abs(ev.t_start_ns / 1e9 - 1.0 - 3.0) < 0.011  # back-dated to the onset
+    f = ev.features
+    assert f.approach_mps == pytest.approx(0.3, abs=0.02)
+    assert f.rebound_mps == pytest.approx(0.12, abs=0.02)
+    assert f.dv_imu_mps == pytest.approx(0.42, rel=0.15)
+    assert f.rebound and f.axial_fraction < 0.2
+    labels = [o.label for o in obs if o.event_id == ev.id]
+    assert labels[:2] == [LABEL_SURFACE, LABEL_INSIDE]
+
+
+def test_the_contact_point_is_the_body_point_facing_the_wall_at_the_onset():
+    t, f, q, pos = data = flight(**touch(speed=0.5))
+    det, obs = run(data)
+    ev = det.events[0]
+    on = int(np.searchsorted(t, ev.t_start_ns))
+    wall_x = pos[on, 0] - 0.2  # the cylinder's radius ahead of the centre at the onset
+    xc = next(o for o in obs if o.label == LABEL_SURFACE).position
+    assert abs(xc[0] - wall_x) < 0.01
+    xin = next(o for o in obs if o.label == LABEL_INSIDE).position
+    assert xin[0] == pytest.approx(xc[0] - 0.1, abs=2e-3)  # d_in behind it, along -n
+
+
+def test_guarded_body_places_the_contact_on_the_guard_rim_whatever_the_yaw():
+    body = VehicleSettings(shape="guards")
+    for yaw in (0.0, 0.4, math.pi / 4):
+        t, f, q, pos = data = flight(**touch(speed=0.6), yaw=yaw)
+        det, obs = run(data, vehicle=body)
+        ev = det.events[0]
+        on = int(np.searchsorted(t, ev.t_start_ns))
+        xc = next(o for o in obs if o.label == LABEL_SURFACE).position
+        # level body: FLU -> ENU is a rotation about z; the rim point facing -x
+        yaw_enu = math.pi / 2 - yaw  # FRD yaw from north -> FLU heading from east
+        R = np.array([[math.cos(yaw_enu), -math.sin(yaw_enu), 0], [math.sin(yaw_enu),
+                      math.cos(yaw_enu), 0], [0, 0, 1]])  # fmt: skip
+        expected = pos[on] + contact_offset(body, WALL, R)
+        assert np.linalg.norm(xc - expected) < 0.01
+        reach = -(expected - pos[on]) @ WALL
+        assert 0.24 < reach < 0.30  # the guard rims reach 0.25-0.29 m
+
+
+def test_body_support_points():
+    cyl = VehicleSettings()
+    assert np.allclose(contact_offset(cyl, WALL, np.eye(3)), [-0.2, 0.0, 0.0])
+    assert np.allclose(contact_offset(cyl, [0, 0, 1.0], np.eye(3)), [0.0, 0.0, -0.05])
+    g = VehicleSettings(shape="guards", layout="+", leg_length_m=0.0)
+    # "+" layout, facing -x: the front rotor's guard rim at arm + ring radius
+    assert np.allclose(contact_offset(g, WALL, np.eye(3)), [-(0.17 + 0.12), 0.0, 0.0])
+    with pytest.raises(ConfigError):
+        VehicleSettings(shape="sphere")
+
+
+def test_manoeuvres_along_the_thrust_axis_make_no_candidate():
+    # thrust ramps of 1 G up and down in 0.3 s each (hard climbs and stops)
+    def thrust(x):
+        ph = x % 1.5
+        return G * float(np.clip(min(ph, 0.9 - ph) / 0.3, 0, 1)) if x > 1 else 0.0
+
+    det, _ = run(flight(duration=8.0, thrust=thrust, noise=0.4))
+    assert det.events == []
+
+
+def test_a_gust_is_long_and_pushes_without_an_approach():
+    det, _ = run(flight(impulses=[(3.0, 0.2, 1.5, (0.0, 1.0, 0.0))]))
+    assert len(det.events) == 1
+    f = det.events[0].features
+    assert f.duration_s > 0.1  # a touch's is about the 30 ms filter window
+    assert abs(f.approach_mps) < 0.05 and not f.rebound
+
+
+def test_batching_does_not_change_anything():
+    data = flight(duration=10.0, impulses=[(3.0, 0.022, 0.6, WALL), (6.0, 0.15, 1.0, (0, 1, 0))],
+                  v0=(-0.4, 0.0, 0.0))  # fmt: skip
+    a, oa = run(data, batch=1)
+    b, ob = run(data, batch=97)
+    assert [(e.t_start_ns, e.t_end_ns, e.p_false) for e in a.events] == [
+        (e.t_start_ns, e.t_end_ns, e.p_false) for e in b.events
+    ]
+    assert [(o.id, o.t_ns, o.position.tobytes()) for o in oa] == [
+        (o.id, o.t_ns, o.position.tobytes()) for o in ob
+    ]
+
+
+def test_without_a_pose_the_event_is_kept_but_nothing_is_placed():
+    det, obs = run(flight(**touch(speed=0.5)), pose=False)
+    assert len(det.events) == 1 and obs == []
+    assert not det.events[0].features.has_mocap
+    assert det.stats.no_pose > 0
+
+
+def test_bad_samples_are_rejected_and_counted():
+    det = ImpulseDetector()
+    q = (1.0, 0.0, 0.0, 0.0)
+    assert det.update(10, (0.0, 0.0, -G), q) == []
+    assert det.update(10, (0.0, 0.0, -G), q) == []  # same time
+    assert det.update(20, (math.nan, 0.0, -G), q) == []
+    assert det.update(30, (0.0, 0.0), q) == []  # wrong shape
+    assert det.update(40, (0.0, 0.0, -G), (1.0, math.inf, 0, 0)) == []
+    assert det.stats.rejected == 4
+
+
+def test_free_space_follows_time_and_path_and_pauses_after_an_impulse():
+    # 0.05 m/s: a point every 2 s of data time (the paper's 0.5 Hz); then 0.55 m/s after the
+    # impulse: a point every 0.1 m of path
+    data = flight(duration=12.0, v0=(0.05, 0.0, 0.0), impulses=[(7.0, 0.022, 0.5, WALL)])
+    det, obs = run(data)
+    ext = [o for o in obs if o.label == LABEL_OUTSIDE]
+    t = np.array([o.t_ns for o in ext]) / 1e9 - 1.0
+    before, after = t[t < 7.0], t[t > 7.6]
+    assert np.allclose(np.diff(before), 2.0, atol=0.01)
+    assert np.allclose(np.diff(after), 0.1 / 0.55, atol=0.01)
+    ev = det.events[0]
+    end = ev.t_end_ns / 1e9 - 1.0
+    assert [x for x in t if 7.0 - 0.01 < x < end + 0.5] == []
+
+
+def test_rejected_candidates_make_no_observations():
+    always_false = Logistic(("log_peak_g",), (0.0,), (1.0,), (0.0,), 10.0)
+    model = EvidenceModel(always_false, always_false, "test")
+    det, obs = run(flight(**touch(speed=0.5)), model=model)
+    assert det.events[0].rejected and det.events[0].p_false > 0.99
+    assert [o for o in obs if o.label != LABEL_OUTSIDE] == []
+
+
+def test_model_inputs_and_probability():
+    f = ImpulseFeatures(2.0, 2.5, 0.03, 0.42, 0.1, 0.3, 0.12, 1.4)
+    z = model_inputs(f)
+    assert z["log_duration_ms"] == pytest.approx(math.log(30.0))
+    assert z["reversal"] == pytest.approx(0.12)
+    assert "approach" not in model_inputs(ImpulseFeatures(2.0, 2.5, 0.03, 0.42, 0.1))
+    lg = Logistic(("log_duration_ms",), (3.0,), (1.0,), (2.0,), 0.0)
+    assert lg.probability({"log_duration_ms": 3.0}) == pytest.approx(0.5)
+    assert lg.probability({"log_duration_ms": 5.0}) > 0.95
+
+
+def test_the_bundled_evidence_model_loads_and_bad_files_are_named(tmp_path):
+    EvidenceModel.load()
+    bad = tmp_path / "m.json"
+    bad.write_text("{")
+    with pytest.raises(ConfigError, match="m.json"):
+        EvidenceModel.load(bad)
+    with pytest.raises(ConfigError, match="does not exist"):
+        EvidenceModel.load(tmp_path / "none.json")
