@@ -27,7 +27,7 @@ from groundstation.contact.settings import ContactSettings, G
 from groundstation.errors import InputDataError
 
 _IDENTITY = (1.0, 0.0, 0.0, 0.0)
-OUTLIER_RATIO = 2.5
+OUTLIER_RATIO = 3.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,7 +55,7 @@ class DetectorCalibration:
     margin : float
     impulses_at_s : tuple of float
         Seconds into the segment where a residual stood out from the rest (above
-        ``OUTLIER_RATIO`` times its 99.9th percentile): something may have touched the vehicle
+        ``OUTLIER_RATIO`` times its 99th percentile): something may have touched the vehicle
         there, and then the levels are too high. Choose another segment.
     """
 
@@ -193,7 +193,7 @@ def calibrate(
         )
 
     sl, sa = stats(lat), stats(ax)
-    out = (lat > OUTLIER_RATIO * max(sl.p999, 1e-6)) | (ax > OUTLIER_RATIO * max(sa.p999, 1e-6))
+    out = (lat > OUTLIER_RATIO * max(sl.p99, 1e-6)) | (ax > OUTLIER_RATIO * max(sa.p99, 1e-6))
     times: list[float] = []
     for x in ((tr[out] - t[0]) / 1e9).tolist():
         if not times or x - times[-1] > 0.5:
