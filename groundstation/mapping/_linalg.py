@@ -47,6 +47,9 @@ class BFactor:
         ``log|B|``, ``tr(B^-1)``, ``tr(P)`` with ``P = W^1/2 B^-1 W^1/2``, ``a^T K a``, ``r^T a``.
     grad : (2,) float64
         M3 gradient of L1 with respect to ``(log l, log sigma_f^2)``.
+    P : (n, n) float64 or None
+        ``P = (K + W^-1)^-1`` (full, symmetric) when asked for (``keep_P``): its blocks give
+        leave-group-out residuals (ALGORITHM.md §12).
     """
 
     L: np.ndarray
@@ -61,6 +64,7 @@ class BFactor:
     aKa: float
     r_a: float
     grad: np.ndarray
+    P: np.ndarray | None = None
 
     @property
     def kl_f(self) -> float:
@@ -75,7 +79,13 @@ class BFactor:
 
 
 def factorize(
-    K: np.ndarray, D: np.ndarray, w: np.ndarray, r: np.ndarray, mu0: float, lengthscale: float
+    K: np.ndarray,
+    D: np.ndarray,
+    w: np.ndarray,
+    r: np.ndarray,
+    mu0: float,
+    lengthscale: float,
+    keep_P: bool = False,
 ) -> BFactor:
     """Factorise ``B`` and derive ``q(f)``, the bound's parts and the M3 gradient.
 
@@ -92,6 +102,8 @@ def factorize(
     mu0 : float
         Prior mean.
     lengthscale : float, metres
+    keep_P : bool
+        Also return ``P = (K + W^-1)^-1`` in full (one more n^2 copy).
 
     Returns
     -------
@@ -124,6 +136,10 @@ def factorize(
     T *= sw[None, :]  # lower triangle of P = W^1/2 B^-1 W^1/2
     diag_P = np.diag(T).copy()
     tr_P = float(diag_P.sum())
+    P_full = None
+    if keep_P:
+        P_full = T + T.T
+        P_full.flat[:: n + 1] -= diag_P
     T *= K  # lower triangle of P o K
     dT = np.diag(T).copy()
     rs = T.sum(axis=1) + T.sum(axis=0) - dT  # row sums of the full symmetric P o K
@@ -152,6 +168,7 @@ def factorize(
         aKa=aKa,
         r_a=float(r @ a),
         grad=grad,
+        P=P_full,
     )
 
 

@@ -50,14 +50,17 @@ Restart: :meth:`Mapper.restore` rebuilds the training set from the observations 
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable, Iterable
 
 import numpy as np
 
 from groundstation.contact.detector import Observation
+from groundstation.contact.vehicle import VehicleSettings
 from groundstation.errors import GroundstationError
 from groundstation.mapping.diagnostics import diagnose
+from groundstation.mapping.model import SurfaceModel
 from groundstation.mapping.robust import PLATEAU_ALPHA  # the Gaussian plateau (§7.3)
 from groundstation.mapping.settings import MapperSettings, MappingSettings, SurfaceSettings
 from groundstation.mapping.surface import SurfaceMesh
@@ -94,6 +97,11 @@ class FitResult:
         Why not reliable (diagnostics reason strings, or ``fit_error: ...``).
     fallback : str
         Fallback tried ("none" if none).
+    p_false : (n,) float64 or None
+        Posterior probability that each observation's event is false (mixture engine; 0 for
+        free space, NaN unknown; None for the legacy engine).
+    notes : tuple of str
+        Facts worth showing that do not make the fit unreliable (``region_clipped``).
     """
 
     fit_index: int
@@ -109,13 +117,15 @@ class FitResult:
     reliable: bool
     reasons: tuple[str, ...]
     fallback: str = "none"
+    p_false: np.ndarray | None = None
+    notes: tuple[str, ...] = ()
 
 
 def default_model_factory(mapping: MappingSettings, surface: SurfaceSettings):
-    """The surface model the mapper fits (the one line to change to switch models)."""
-    from groundstation.mapping.model import SurfaceModel
+    """The legacy engine's surface model (``mapping.engine = legacy``)."""
+    from groundstation.mapping.legacy import LegacySurfaceModel
 
-    return SurfaceModel(mapping, surface)
+    return LegacySurfaceModel(mapping, surface)
 
 
 class Mapper:
@@ -127,8 +137,12 @@ class Mapper:
     mapping : MappingSettings
     surface : SurfaceSettings
     model_factory : callable, optional
-        ``(mapping, surface) -> model`` with ``fit(X, y, ids, t_ns)``, ``mesh()``,
-        ``uncertainty_by_id()``, ``timings_``, ``mode_``, ``fit_`` (default: SurfaceModel).
+        Legacy engine only: ``(mapping, surface) -> model`` with ``fit(X, y, ids, t_ns)``,
+        ``mesh()``, ``uncertainty_by_id()``, ``timings_``, ``mode_``, ``fit_``.
+    vehicle : VehicleSettings, optional
+        The body whose swept volume refutes contacts (mixture engine).
+    internal_depth_m : float
+        The detector's d_in (mixture engine).
     """
 
     def __init__(
@@ -137,12 +151,17 @@ class Mapper:
         mapping: MappingSettings | None = None,
         surface: SurfaceSettings | None = None,
         model_factory: Callable | None = None,
+        vehicle: VehicleSettings | None = None,
+        internal_depth_m: float = 0.1,
     ) -> None:
         self.settings = settings or MapperSettings()
         self.mapping = mapping or MappingSettings()
         self.surface = surface or SurfaceSettings()
         self._factory = model_factory or default_model_factory
-        self._model = self._factory(self.mapping, self.surface)
+        if self.mapping.engine == "mixture" and model_factory is None:
+            self._model = SurfaceModel(self.mapping, self.surface, vehicle, internal_depth_m)
+        else:
+            self._model = self._factory(self.mapping, self.surface)
         self._obs: dict[int, Observation] = {}
         self._new = 0
         self._n_contacts = 0
@@ -220,6 +239,8 @@ class Mapper:
         self._new = 0
         data_ns = max(o.t_ns for o in obs) if obs else 0
         self._last_fit_ns = data_ns
+        if isinstance(self._model, SurfaceModel):
+            return self._refit_mixture(obs, data_ns)
         ids = np.array([o.id for o in obs], dtype=np.int64)
         X = np.array([o.position for o in obs], dtype=np.float64).reshape(-1, 3)
         y = np.array([o.label for o in obs], dtype=np.float64)
@@ -268,6 +289,84 @@ class Mapper:
             self.fit_index, data_ns, ids, u_arr, flags, events,
             None if lg is None else lg.mesh, -1 if lg is None else lg.mesh_fit_index,
             timings, hyper, False, reasons, fallback,
+        )  # fmt: skip
+
+    def _refit_mixture(self, obs: list[Observation], data_ns: int) -> FitResult:
+        """A refit of the mixture engine: fit, mesh, flags by posterior per event."""
+        s, model = self.settings, self._model
+        ids = np.array([o.id for o in obs], dtype=np.int64)
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        try:
+            summary = model.fit(obs)
+            mesh = None
+            if s.with_mesh:
+                t1 = time.perf_counter()
+                mesh = model.mesh()
+                timings["mesh_s"] = time.perf_counter() - t1
+            region = model.region()
+        except (GroundstationError, ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
+            timings["fit_s"] = time.perf_counter() - t0
+            timings["total_s"] = timings["fit_s"]
+            return self._unreliable(ids, data_ns, timings, {}, (f"fit_error: {exc}",), "none")
+        timings.update(
+            fit_s=model.timings_.get("fit_s", 0.0), rows_s=model.timings_.get("rows_s", 0.0)
+        )
+        timings.update({k: v for k, v in model.timings_.items() if k in ("field_s",)})
+        timings["total_s"] = time.perf_counter() - t0
+        oid, u, pf = model.by_observation()
+        u_by = dict(zip(oid.tolist(), u.tolist(), strict=True))
+        p_by = dict(zip(oid.tolist(), pf.tolist(), strict=True))
+        u_arr = np.array([u_by.get(i, math.nan) for i in ids.tolist()], dtype=np.float64)
+        p_arr = np.array([p_by.get(i, math.nan) for i in ids.tolist()], dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            flags = np.where(p_arr > s.flag_p, FLAG_FALSE_POSITIVE, 0).astype(np.uint8)
+        flagged = tuple(sorted(e for e, p in model.event_posteriors().items() if p > s.flag_p))
+        hyper = {
+            "lengthscale": summary.lengthscale,
+            "signal_var": summary.signal_var,
+            "log_marginal": summary.log_marginal,
+            "n_iter": summary.n_iter,
+            "n_train": summary.n_train,
+            "n_groups": summary.n_groups,
+            "mode": "mixture",
+            "region_min": region.lo.tolist(),
+            "region_max": region.hi.tolist(),
+        }
+        finite = np.isfinite(model.fit_.posterior_false_).all() and math.isfinite(
+            summary.log_marginal
+        )
+        reasons = () if finite else ("nonfinite_output",)
+        notes = ("region_clipped",) if region.clipped else ()
+        if reasons:
+            return self._unreliable(ids, data_ns, timings, hyper, reasons, "none")
+        res = FitResult(
+            self.fit_index, data_ns, ids, u_arr, flags, flagged, mesh, self.fit_index,
+            timings, hyper, True, (), "none", p_arr, notes,
+        )  # fmt: skip
+        self.last_good = res
+        return res
+
+    def _unreliable(self, ids, data_ns, timings, hyper, reasons, fallback) -> FitResult:
+        """Keep the last good mesh and per-id values (new ids: u nan -> 0, no flag)."""
+        lg = self.last_good
+        u_arr = np.zeros(len(ids))
+        p_arr = np.full(len(ids), np.nan)
+        flags = np.zeros(len(ids), dtype=np.uint8)
+        events: tuple[int, ...] = ()
+        if lg is not None:
+            pos = {i: k for k, i in enumerate(lg.ids.tolist())}
+            for k, i in enumerate(ids.tolist()):
+                if i in pos:
+                    u_arr[k] = lg.u[pos[i]]
+                    flags[k] = lg.flags[pos[i]]
+                    if lg.p_false is not None:
+                        p_arr[k] = lg.p_false[pos[i]]
+            events = lg.flagged_events
+        return FitResult(
+            self.fit_index, data_ns, ids, u_arr, flags, events,
+            None if lg is None else lg.mesh, -1 if lg is None else lg.mesh_fit_index,
+            timings, hyper, False, tuple(reasons), fallback, p_arr,
         )  # fmt: skip
 
     def _attempt(self, model, X, y, ids, t_ns, warm: bool):

@@ -13,8 +13,45 @@ from groundstation.errors import ConfigError
 class MappingSettings:
     """How the implicit surface is estimated.
 
+    Two engines (``engine``): ``mixture`` (default, ``mapping/model.py``) decides every contact
+    event true or false with a posterior probability from its detector prior and the rest of the
+    data (``mapping/mixture.py``); ``legacy`` is the previous per-datum Student-t pipeline
+    (``mapping/legacy.py``: merge, exact/sparse robust GPIS, margin flags), kept for measured
+    comparisons. Fields marked (legacy) only shape the legacy engine and the estimators
+    ``GPIS``/``RobustGPIS`` the paper benches use.
+
     Attributes
     ----------
+    engine : "mixture" | "legacy"
+        Which mapping engine runs.
+    lengthscale_max : float
+        Upper bound of the learnt length scale, metres (mixture). With the floor
+        ``lengthscale_min`` it ties the kernel to the map's resolution: the floor is twice the
+        0.05 m grid, the cap ten times it. An uncapped fit on touch data smoothed boxes into blobs
+        (l ~ 0.86 m: 25 % of the surface more than 0.1 m from the mesh).
+    outlier_var : float
+        Label variance of a false event's rows (mixture; the label scale is 1).
+    contact_noise : float
+        Label noise of a contact or internal row before its placement uncertainty (mixture).
+    free_noise : float
+        Label noise of a free-space row (mixture): a vehicle centre is outside by an unknown
+        distance.
+    free_voxel_m : float
+        Free-space rows are thinned to one per voxel of this edge (mixture).
+    prior_false : float
+        Prior probability that a contact event is false when the detector gave no ``p_false``
+        (mixture).
+    burst_gap_s, burst_radius_m : float
+        Events closer than these in time and space form a burst, tested as one (mixture).
+    sweep_llr : float
+        Evidence (nats) that an event is false when its contact lies inside the vehicle's body at
+        a free-space sample away from it: log(1 / 0.01), a true contact being there only through
+        a placement error beyond ``sweep_tolerance_m`` (mixture).
+    sweep_exclude_s, sweep_tolerance_m : float
+        Free-space samples this close in time to the event do not count; the body is shrunk by
+        the tolerance (mixture).
+    flag_tol : float
+        The mixture's EM stops when no event's posterior moves by more than this.
     model : "robust" | "gpis"
         Student-t robust GPIS (the paper's method) or homoscedastic GPIS.
     lengthscale : float
@@ -126,7 +163,8 @@ class MappingSettings:
         = -0.5 makes the slope symmetric. Labels on the bus and in files stay -1/0/+1.
     lengthscale_min : float
         Lower bound of the learnt length scale, metres: the finest detail the map resolves
-        (the initial ``lengthscale`` is raised to it). A false contact is refuted only by
+        (the initial ``lengthscale`` is raised to it). 0.1 m: twice the 0.05 m grid (the legacy
+        engine was measured at 0.35 m, below). A false contact is refuted only by
         free-space points within about a length scale of it; ML-II on sparse touch data picks
         l ~ 0.16-0.2 m, where every gust is interpolated as a tiny object of its own. Measured
         on 11 SITL sessions (52 gust and 187 touch events), flagged-event precision / recall:
@@ -138,6 +176,19 @@ class MappingSettings:
         2.8), which again interpolates every gust.
     """
 
+    engine: Literal["mixture", "legacy"] = "mixture"
+    lengthscale_max: float = 0.5
+    outlier_var: float = 1.0
+    contact_noise: float = 0.05
+    free_noise: float = 0.3
+    free_voxel_m: float = 0.1
+    prior_false: float = 0.1
+    burst_gap_s: float = 3.0
+    burst_radius_m: float = 0.5
+    sweep_llr: float = 4.6
+    sweep_exclude_s: float = 0.5
+    sweep_tolerance_m: float = 0.03
+    flag_tol: float = 1e-3
     model: Literal["robust", "gpis"] = "robust"
     lengthscale: float = 0.25
     signal_var: float = 1.0
@@ -171,7 +222,7 @@ class MappingSettings:
     gaussian_restart_alpha: float = 1e5
     cold_check: bool = True
     inside_value: float = -0.5
-    lengthscale_min: float = 0.35
+    lengthscale_min: float = 0.1
     signal_var_max: float = 1.0
 
     def __post_init__(self) -> None:
@@ -192,10 +243,29 @@ class MappingSettings:
             "gaussian_restart_alpha",
             "lengthscale_min",
             "signal_var_max",
+            "lengthscale_max",
+            "outlier_var",
+            "contact_noise",
+            "free_noise",
+            "free_voxel_m",
+            "burst_radius_m",
+            "flag_tol",
         ):
             value = getattr(self, name)
             if not value > 0:
                 raise ValueError(f"mapping.{name} must be > 0, got {value!r}")
+        if self.engine not in ("mixture", "legacy"):
+            raise ValueError(f"mapping.engine must be mixture or legacy, got {self.engine!r}")
+        if not self.lengthscale_min <= self.lengthscale_max:
+            raise ValueError(
+                f"mapping.lengthscale_min {self.lengthscale_min!r} must not exceed "
+                f"lengthscale_max {self.lengthscale_max!r}"
+            )
+        if not 0 < self.prior_false < 1:
+            raise ValueError(f"mapping.prior_false must be in (0, 1), got {self.prior_false!r}")
+        for name in ("burst_gap_s", "sweep_llr", "sweep_exclude_s", "sweep_tolerance_m"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"mapping.{name} must be >= 0, got {getattr(self, name)!r}")
         if not -1.0 <= self.inside_value < 0.0:
             raise ValueError(f"mapping.inside_value must be in [-1, 0), got {self.inside_value!r}")
         if not self.lengthscale_min < 100.0:
@@ -240,7 +310,10 @@ class SurfaceSettings:
     Attributes
     ----------
     region_min, region_max : tuple of float
-        Corners of the exploration region, metres (paper: 8 x 4 x 2 m).
+        An optional clip of the mapped region, metres (empty: none). The region follows the
+        data: the box of every observation (contacts, internal points and the path flown) plus
+        ``region_margin``; a configured clip that cuts into it is reported with each fit
+        (``region_clipped``).
     spacing : float
         Grid spacing, metres (paper: 0.05 m in 3D, 0.02 m in 2D).
     chunk_mb : float
@@ -254,8 +327,8 @@ class SurfaceSettings:
     band_voxels : float
         Half-width, in fine voxels, of the band around the zero set evaluated exactly.
     region_margin : float
-        Metres added around the contacts' bounding box; the meshed region is that box
-        intersected with ``[region_min, region_max]``.
+        Metres added around the data's bounding box (mixture: every observation; legacy: the
+        contacts); a configured ``[region_min, region_max]`` clips it.
     max_std_fraction : float
         Keep only mesh faces whose vertices' predictive std is at most this fraction of the
         prior std sigma_f (``surface.confident_part``); 1 keeps everything. Far from the
@@ -265,8 +338,8 @@ class SurfaceSettings:
         touched surface (worst session 0.18 m against 0.15 m).
     """
 
-    region_min: tuple[float, ...] = (0.0, 0.0, 0.0)
-    region_max: tuple[float, ...] = (8.0, 4.0, 2.0)
+    region_min: tuple[float, ...] = ()
+    region_max: tuple[float, ...] = ()
     spacing: float = 0.05
     chunk_mb: float = 64.0
     voxels_per_lengthscale: float = 5.0
@@ -276,9 +349,9 @@ class SurfaceSettings:
     max_std_fraction: float = 0.7
 
     def __post_init__(self) -> None:
-        if len(self.region_min) != len(self.region_max) or len(self.region_min) not in (2, 3):
+        if len(self.region_min) != len(self.region_max) or len(self.region_min) not in (0, 2, 3):
             raise ValueError(
-                f"surface.region_min/region_max must both have 2 or 3 coordinates, got "
+                f"surface.region_min/region_max must both be empty or have 2 or 3 coordinates, got "
                 f"{self.region_min!r} and {self.region_max!r}"
             )
         if any(hi <= lo for lo, hi in zip(self.region_min, self.region_max, strict=True)):
@@ -318,8 +391,11 @@ class MapperSettings:
         ... or after this many new observations, whichever comes first.
     min_contacts : int
         Contact observations needed before the first fit.
+    flag_p : float
+        An event is flagged false when its posterior probability of being false exceeds this
+        (mixture engine; 1/2 minimises errors for equal costs).
     flag_u : float
-        Margin of the flag rule above the fit's noise floor, label units^2 (module docstring).
+        Margin of the flag rule above the fit's noise floor, label units^2 (legacy engine).
     flag_event_fraction : float
         Fraction of an event's contacts that must be suspect to flag the whole event.
     flag_fraction_max : float
@@ -337,6 +413,7 @@ class MapperSettings:
     refit_period_s: float = 2.0
     refit_min_new: int = 30
     min_contacts: int = 2
+    flag_p: float = 0.5
     flag_u: float = 0.3
     flag_event_fraction: float = 0.5
     flag_fraction_max: float = 0.9
@@ -352,6 +429,8 @@ class MapperSettings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ConfigError(f"mapper.{name} must be an integer >= 1, got {v!r}")
+        if not 0 < self.flag_p < 1:
+            raise ConfigError(f"mapper.flag_p must be in (0, 1), got {self.flag_p!r}")
         for name in ("flag_event_fraction", "flag_fraction_max"):
             if not 0 < getattr(self, name) <= 1:
                 raise ConfigError(f"mapper.{name} must be in (0, 1], got {getattr(self, name)!r}")

@@ -1,0 +1,405 @@
+"""Event-mixture GPIS: every contact event is true or false, decided by its prior and the rest of
+the data (ALGORITHM.md §11-§12). Pure: no clocks, files or threads.
+
+Model
+-----
+A GP ``f ~ GP(mu0, k)`` (squared exponential) explains the shape potential. Rows come in
+*groups*: the rows of one contact event (its contact and internal points) form a group with a
+latent ``z_g`` (true or false) and a prior ``pi_g = P(z_g = false)`` (the detector's ``p_false``
+from the impulse's physics, or a default); free-space rows are their own trusted group (-1).
+Given ``z_g``, a row's label is ``y_i ~ N(f_i, s_i^2)`` when true (``s_i``: its placement noise)
+and ``y_i ~ N(f_i, s_out^2)`` when false (``s_out`` on the label scale: nothing ties it to f).
+
+Fit (an EM on the two-component mixture, one responsibility per group)
+----------------------------------------------------------------------
+1. Responsibilities ``r_g = P(z_g = false | data)`` start at the priors (or the last fit's).
+2. The GP is fitted with per-row precisions ``w_i = (1 - r_g) / s_i^2 + r_g / s_out^2``
+   (E-step of q(f) for the mixture), factorised in the B form (``_linalg.factorize``).
+3. Each *burst* (groups close in time and space: ``mapping/events.py``) is left out as a whole,
+   in closed form from ``P = (K + W^-1)^-1``: ``e_B = P_BB^-1 a_B`` is the residual of the
+   burst's labels from the prediction of the other data, ``P_BB^-1`` its covariance (R&W 5.4.2
+   for blocks; ALGORITHM.md §12). For each group g of the burst, the log likelihood ratio of
+   false against true is
+
+       llr_g = log N(e_g; 0, V_g + s_out^2 I) - log N(e_g; 0, V_g + S_g)
+
+   with ``V_g`` the latent predictive covariance of its rows (``P_BB^-1`` minus their current
+   noise). Leaving out the whole burst is what makes a cluster of consistent false contacts (a
+   gust that keeps hitting one spot) unable to vouch for itself.
+4. ``r_g = sigmoid(logit pi_g + llr_g + extra_g)`` (``extra_g``: other evidence, e.g. the
+   body's swept volume, ``mapping/training.py``), then back to 2 until no ``r_g`` moves by
+   ``tol``.
+
+The kernel hyperparameters maximise the weighted GP's evidence ``log N(y | mu0, K + W^-1)`` with
+``W`` fixed (L-BFGS-B on the M3 gradient), inside :class:`KernelBounds` (tied to the map's
+resolution), when asked for (``learn_kernel``): at the first iteration of a fit.
+
+``posterior_false_`` is a calibrated probability per group; a group is flagged false when it
+exceeds 1/2 (the decision that minimises errors for equal costs).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from scipy.optimize import minimize
+
+from groundstation.errors import InputDataError, NotFittedError
+from groundstation.mapping._linalg import BFactor, FrozenPosterior, factorize
+from groundstation.mapping.kernels import se_from_sq_dists, sq_dists
+
+LOG_2PI = math.log(2.0 * math.pi)
+_PRIOR_CLIP = 1e-4
+
+
+@dataclasses.dataclass(frozen=True)
+class KernelBounds:
+    """Bounds of the learnt kernel hyperparameters.
+
+    Attributes
+    ----------
+    lengthscale : (lo, hi), metres
+        The finest detail the map resolves and the smoothest it may become.
+    signal_var : (lo, hi), label units^2
+    """
+
+    lengthscale: tuple[float, float]
+    signal_var: tuple[float, float]
+
+    def __post_init__(self) -> None:
+        for name in ("lengthscale", "signal_var"):
+            lo, hi = getattr(self, name)
+            if not 0 < lo <= hi:
+                raise InputDataError(
+                    f"kernel bounds: {name} must satisfy 0 < lo <= hi, got {lo, hi}"
+                )
+
+    def clip(self, lengthscale: float, signal_var: float) -> tuple[float, float]:
+        return (
+            float(np.clip(lengthscale, *self.lengthscale)),
+            float(np.clip(signal_var, *self.signal_var)),
+        )
+
+    def at_bound(
+        self, lengthscale: float, signal_var: float, rtol: float = 1e-3
+    ) -> tuple[str, ...]:
+        """Which bounds the values sit on (for the fit summary)."""
+        out = []
+        lo, hi = self.lengthscale
+        if lengthscale <= lo * (1 + rtol):
+            out.append("lengthscale_lower")
+        if lengthscale >= hi * (1 - rtol):
+            out.append("lengthscale_upper")
+        lo, hi = self.signal_var
+        if signal_var <= lo * (1 + rtol):
+            out.append("signal_var_lower")
+        if signal_var >= hi * (1 - rtol):
+            out.append("signal_var_upper")
+        return tuple(out)
+
+
+@dataclasses.dataclass(frozen=True)
+class MixtureFit:
+    """Summary of one :meth:`EventMixtureGPIS.fit` (frozen; what the mapper, ``diagnose`` and
+    the benches read).
+
+    Attributes
+    ----------
+    lengthscale, signal_var : float
+    log_marginal : float
+        ``log N(y | mu0, K + W^-1)`` at the final weights.
+    n_iter : int
+        EM iterations (factorisations) used.
+    converged : bool
+        No responsibility moved by more than ``tol`` at the last iteration.
+    at_bounds : tuple of str
+        Kernel bounds the hyperparameters sit on.
+    n_train : int
+    n_groups : int
+    n_flagged : int
+        Groups with ``posterior_false > 0.5``.
+    reasons : tuple of str
+        Why the fit may not be trusted (empty when fine).
+    """
+
+    lengthscale: float
+    signal_var: float
+    log_marginal: float
+    n_iter: int
+    converged: bool
+    at_bounds: tuple[str, ...]
+    n_train: int
+    n_groups: int
+    n_flagged: int
+    reasons: tuple[str, ...] = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class Groups:
+    """Which rows belong to which group, and the groups' bursts and priors.
+
+    Attributes
+    ----------
+    row_group : (n,) int64
+        Group index of each row, -1 for trusted rows (free space).
+    prior_false : (G,) float64
+        ``P(z_g = false)`` before the data.
+    burst : (G,) int64
+        Burst index of each group (groups of one burst are left out together).
+    extra_llr : (G,) float64
+        Further log likelihood ratios (false vs true) from outside the GP.
+    """
+
+    row_group: np.ndarray
+    prior_false: np.ndarray
+    burst: np.ndarray
+    extra_llr: np.ndarray
+
+    def __post_init__(self) -> None:
+        g = self.prior_false.shape[0]
+        if self.burst.shape != (g,) or self.extra_llr.shape != (g,):
+            raise InputDataError(
+                "groups: prior_false, burst and extra_llr need one entry per group"
+            )
+        if self.row_group.size and self.row_group.max(initial=-1) >= g:
+            raise InputDataError("groups: a row refers to a group that does not exist")
+
+
+def _gauss_logpdf(e: np.ndarray, S: np.ndarray) -> float:
+    """log N(e; 0, S) for a small SPD matrix S."""
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(S)
+        w = np.maximum(w, 1e-12)
+        z = V.T @ e
+        return float(-0.5 * (np.sum(z * z / w) + np.sum(np.log(w)) + e.size * LOG_2PI))
+    z = np.linalg.solve(L, e)
+    return float(-0.5 * (z @ z) - np.sum(np.log(np.diag(L))) - 0.5 * e.size * LOG_2PI)
+
+
+class EventMixtureGPIS:
+    """GP implicit surface with one true/false latent per contact event (module docstring).
+
+    Parameters
+    ----------
+    lengthscale, signal_var : float
+        Initial kernel hyperparameters (clipped into ``bounds``).
+    bounds : KernelBounds
+    outlier_var : float
+        ``s_out^2``: label variance of a false group's rows.
+    prior_mean : float
+        ``mu0``.
+    learn_kernel : bool
+        Maximise the evidence over the kernel hyperparameters at the first iteration.
+    max_iter : int
+        EM iterations (factorisations) at most.
+    tol : float
+        Convergence: largest change of a responsibility.
+    kernel_iter : int
+        L-BFGS-B iterations of a kernel step.
+    chunk_mb : float
+        Memory budget of one prediction chunk.
+    """
+
+    def __init__(
+        self,
+        *,
+        lengthscale: float,
+        signal_var: float,
+        bounds: KernelBounds,
+        outlier_var: float = 1.0,
+        prior_mean: float = 0.0,
+        learn_kernel: bool = True,
+        max_iter: int = 20,
+        tol: float = 1e-3,
+        kernel_iter: int = 15,
+        chunk_mb: float = 64.0,
+    ) -> None:
+        if not outlier_var > 0 or max_iter < 1 or not tol > 0:
+            raise InputDataError("outlier_var > 0, max_iter >= 1 and tol > 0 are required")
+        self.bounds = bounds
+        self.lengthscale, self.signal_var = bounds.clip(lengthscale, signal_var)
+        self.outlier_var = float(outlier_var)
+        self.prior_mean = float(prior_mean)
+        self.learn_kernel = bool(learn_kernel)
+        self.max_iter = int(max_iter)
+        self.tol = float(tol)
+        self.kernel_iter = int(kernel_iter)
+        self.chunk_mb = float(chunk_mb)
+        self.fit_: MixtureFit | None = None
+
+    # ------------------------------------------------------------------ fitting
+
+    def fit(
+        self,
+        X: np.ndarray,
+        y: np.ndarray,
+        noise_var: np.ndarray,
+        groups: Groups,
+        start: np.ndarray | None = None,
+        theta: tuple[float, float] | None = None,
+    ) -> EventMixtureGPIS:
+        """Fit (module docstring).
+
+        Parameters
+        ----------
+        X : (n, d) float64, metres
+        y : (n,) float64, label units (potential values)
+        noise_var : (n,) float64, > 0
+            Each row's variance when its group is true.
+        groups : Groups
+        start : (G,) float64, optional
+            Starting responsibilities (a warm start); default the priors.
+        theta : (lengthscale, signal_var), optional
+            Starting kernel hyperparameters (default the constructor's).
+
+        Returns
+        -------
+        self
+        """
+        X = np.asarray(X, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        s2 = np.asarray(noise_var, dtype=np.float64)
+        n = X.shape[0]
+        if X.ndim != 2 or y.shape != (n,) or s2.shape != (n,) or groups.row_group.shape != (n,):
+            raise InputDataError(f"fit: X (n, d), y, noise_var and row groups must agree, n = {n}")
+        if n < 2 or not (np.isfinite(X).all() and np.isfinite(y).all()):
+            raise InputDataError("fit: need at least 2 finite rows")
+        if not (s2 > 0).all():
+            raise InputDataError("fit: noise variances must be > 0")
+        prior = np.clip(groups.prior_false, _PRIOR_CLIP, 1 - _PRIOR_CLIP)
+        r = prior.copy() if start is None else np.clip(np.asarray(start, float), 0.0, 1.0)
+        if r.shape != prior.shape:
+            raise InputDataError("fit: start must have one entry per group")
+        ell, sf2 = self.bounds.clip(*(theta or (self.lengthscale, self.signal_var)))
+        center = X.mean(axis=0)
+        D = sq_dists(X, X, center=center)
+        rg = groups.row_group
+        in_group = rg >= 0
+        bursts = self._burst_rows(groups)
+        resid = y - self.prior_mean
+        converged = False
+        fac: BFactor | None = None
+        llr = np.zeros_like(r)
+        it = 0
+        for it in range(1, self.max_iter + 1):
+            w = self._precisions(s2, rg, in_group, r)
+            if it == 1 and self.learn_kernel:
+                ell, sf2 = self._kernel_step(D, w, resid, ell, sf2)
+            K = se_from_sq_dists(D.copy(), ell, sf2)
+            fac = factorize(K, D, w, resid, self.prior_mean, ell, keep_P=True)
+            llr = self._leave_burst_out(fac, w, s2, rg, bursts, r.size)
+            logit = np.log(prior) - np.log1p(-prior) + llr + groups.extra_llr
+            r_new = 1.0 / (1.0 + np.exp(-np.clip(logit, -50.0, 50.0)))
+            delta = float(np.max(np.abs(r_new - r))) if r.size else 0.0
+            r = r_new
+            if delta < self.tol:
+                converged = True
+                break
+        # the posterior of the final weights
+        w = self._precisions(s2, rg, in_group, r)
+        K = se_from_sq_dists(D.copy(), ell, sf2)
+        fac = factorize(K, D, w, resid, self.prior_mean, ell)
+        self.X_train_, self.y_train_ = X, y
+        self.posterior_false_ = r
+        self.llr_ = llr
+        self.weights_ = w
+        self.lengthscale_, self.signal_var_ = ell, sf2
+        self.posterior_ = FrozenPosterior(
+            X, center, fac.a, fac.L, fac.sw, self.prior_mean, ell, sf2
+        )
+        self.mean_train_ = fac.m
+        at = self.bounds.at_bound(ell, sf2)
+        self.fit_ = MixtureFit(
+            lengthscale=ell,
+            signal_var=sf2,
+            log_marginal=float(fac.log_marginal(w)),
+            n_iter=it,
+            converged=converged,
+            at_bounds=at,
+            n_train=n,
+            n_groups=int(r.size),
+            n_flagged=int(np.sum(r > 0.5)),
+            reasons=() if converged else ("not_converged",),
+        )
+        return self
+
+    def _precisions(self, s2, rg, in_group, r) -> np.ndarray:
+        w = 1.0 / s2
+        if r.size:
+            rr = np.where(in_group, r[np.maximum(rg, 0)], 0.0)
+            w = (1.0 - rr) / s2 + rr / self.outlier_var
+        return w
+
+    @staticmethod
+    def _burst_rows(groups: Groups) -> list[np.ndarray]:
+        """Row indices of each burst (bursts of groups that have rows)."""
+        rg = groups.row_group
+        rows = np.flatnonzero(rg >= 0)
+        if rows.size == 0:
+            return []
+        b_of_row = groups.burst[rg[rows]]
+        order = np.argsort(b_of_row, kind="stable")
+        rows, b_sorted = rows[order], b_of_row[order]
+        cuts = np.flatnonzero(np.diff(b_sorted)) + 1
+        return np.split(rows, cuts)
+
+    def _leave_burst_out(self, fac: BFactor, w, s2, rg, bursts, n_groups) -> np.ndarray:
+        """llr (false vs true) of every group from its burst's leave-out residual."""
+        llr = np.zeros(n_groups)
+        P, a = fac.P, fac.a
+        for rows in bursts:
+            Pbb = P[np.ix_(rows, rows)]
+            try:
+                Cb = np.linalg.inv(Pbb)
+            except np.linalg.LinAlgError:
+                Cb = np.linalg.pinv(Pbb)
+            e = Cb @ a[rows]  # y_B - E[y_B | rest]
+            V = Cb - np.diag(1.0 / w[rows])  # latent predictive covariance of f_B | rest
+            V = 0.5 * (V + V.T)
+            g_rows = rg[rows]
+            for g in np.unique(g_rows):
+                k = np.flatnonzero(g_rows == g)
+                Vg, eg = V[np.ix_(k, k)], e[k]
+                true_ll = _gauss_logpdf(eg, Vg + np.diag(s2[rows[k]]))
+                false_ll = _gauss_logpdf(eg, Vg + self.outlier_var * np.eye(k.size))
+                llr[g] = false_ll - true_ll
+        return llr
+
+    def _kernel_step(self, D, w, resid, ell, sf2) -> tuple[float, float]:
+        """Maximise log N(y | mu0, K + W^-1) over (log l, log sf2) within the bounds."""
+        lo = np.log([self.bounds.lengthscale[0], self.bounds.signal_var[0]])
+        hi = np.log([self.bounds.lengthscale[1], self.bounds.signal_var[1]])
+
+        def fun(th: np.ndarray):
+            e, s = float(np.exp(th[0])), float(np.exp(th[1]))
+            K = se_from_sq_dists(D.copy(), e, s)
+            fac = factorize(K, D, w, resid, self.prior_mean, e)
+            return -fac.log_marginal(w), -fac.grad
+
+        x0 = np.clip(np.log([ell, sf2]), lo, hi)
+        try:
+            res = minimize(
+                fun, x0, jac=True, method="L-BFGS-B", bounds=list(zip(lo, hi, strict=True)),
+                options={"maxiter": self.kernel_iter},
+            )  # fmt: skip
+            th = res.x if np.all(np.isfinite(res.x)) else x0
+        except (ArithmeticError, ValueError, np.linalg.LinAlgError):
+            th = x0
+        return self.bounds.clip(float(np.exp(th[0])), float(np.exp(th[1])))
+
+    # ------------------------------------------------------------------ prediction
+
+    def _check(self) -> None:
+        if self.fit_ is None:
+            raise NotFittedError("this EventMixtureGPIS is not fitted yet", hint="call fit first")
+
+    def predict(
+        self, Xq: np.ndarray, return_std: bool = False
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        """Posterior mean (m,) and, if ``return_std``, latent std (m,) at ``Xq`` (m, d)."""
+        self._check()
+        return self.posterior_.predict(np.asarray(Xq, float), return_std, self.chunk_mb)

@@ -1,0 +1,232 @@
+"""From observations to the rows, groups and evidence the mixture GP fits (pure).
+
+- **Rows.** Contact (y = 0) and internal (y = ``inside_value``) points keep one row each: they
+  carry the shape. Free-space points (y = +1) are thinned to one per ``free_voxel_m`` voxel (the
+  first one seen, so a row never changes once chosen): the path flown is dense where the vehicle
+  lingers, and a free point per voxel is all the potential needs.
+- **Noise.** A contact or internal row's variance is ``contact_noise^2 + (slope * sigma_m)^2``
+  (``sigma_m``: the detector's placement uncertainty in metres; ``slope``: the potential's change
+  per metre, from 0 at the surface to ``inside_value`` at ``d_in`` behind it); a free row's is
+  ``free_noise^2`` (a vehicle centre is 'outside' by an unknown distance).
+- **Groups.** The rows of one contact event form a group (contacts without an event id are
+  groups of their own, with the internal point of the same time). Its prior ``P(false)`` is the
+  detector's ``p_false`` (mean over its rows) where known, else ``prior_false``.
+- **Bursts.** Events closer than ``burst_gap_s`` in time and ``burst_radius_m`` in space are
+  chained into one burst, left out together when the mixture tests them (a gust that keeps
+  pushing at one spot makes many consistent 'contacts').
+- **Swept volume.** The vehicle's body cannot have passed through a surface: a contact point
+  that lies inside the body (``body_radius_m`` around a free-space centre, ``body_half_height_m``
+  above and below) at a free-space sample taken at least ``sweep_exclude_s`` away from the event
+  is refuted. It adds ``sweep_llr`` nats to the event's evidence for 'false' (a true contact is
+  only ever inside the swept body by its placement error, kept out by ``sweep_tolerance_m``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from groundstation.contact.detector import Observation
+from groundstation.mapping.mixture import Groups
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainingPolicy:
+    """How observations become rows (see the module docstring; lengths in metres)."""
+
+    inside_value: float = -0.5
+    internal_depth_m: float = 0.1
+    contact_noise: float = 0.05
+    free_noise: float = 0.3
+    free_voxel_m: float = 0.1
+    prior_false: float = 0.1
+    burst_gap_s: float = 3.0
+    burst_radius_m: float = 0.5
+    body_radius_m: float = 0.2
+    body_half_height_m: float = 0.05
+    sweep_exclude_s: float = 0.5
+    sweep_tolerance_m: float = 0.03
+    sweep_llr: float = 4.6
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainingSet:
+    """The fitted rows and their bookkeeping.
+
+    Attributes
+    ----------
+    X : (n, d) float64
+    y : (n,) float64
+        Potential values (0 contact, ``inside_value`` internal, +1 free).
+    noise_var : (n,) float64
+    row_ids : (n,) int64
+        Observation id of each row.
+    groups : Groups
+    event_ids : (G,) int64
+        Detector event id of each group (-1 for contacts without one).
+    group_ids : tuple of (k,) int64 arrays
+        Observation ids of each group (contacts and internal points).
+    swept : (G,) bool
+        The group's contact lies in the body's swept volume.
+    n_raw : int
+        Observations given.
+    """
+
+    X: np.ndarray
+    y: np.ndarray
+    noise_var: np.ndarray
+    row_ids: np.ndarray
+    groups: Groups
+    event_ids: np.ndarray
+    group_ids: tuple[np.ndarray, ...]
+    swept: np.ndarray
+    n_raw: int
+
+    def __len__(self) -> int:
+        return int(self.X.shape[0])
+
+
+def _group_key(o: Observation) -> tuple:
+    return ("e", int(o.event_id)) if o.event_id >= 0 else ("t", int(o.t_ns))
+
+
+def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> TrainingSet:
+    """Rows, groups, priors, bursts and swept-volume evidence of ``obs`` (any order)."""
+    p = policy
+    obs = sorted(obs, key=lambda o: o.id)
+    slope = abs(p.inside_value) / p.internal_depth_m
+    keys: dict[tuple, int] = {}
+    rows_X, rows_y, rows_s2, rows_id, rows_g = [], [], [], [], []
+    g_ids: list[list[int]] = []
+    g_event: list[int] = []
+    g_prior: list[list[float]] = []
+    g_t: list[list[int]] = []
+    g_contacts: list[list[np.ndarray]] = []
+    free_seen: set[tuple[int, ...]] = set()
+    free_pts, free_t = [], []
+    for o in obs:
+        x = np.asarray(o.position, dtype=np.float64)
+        if o.label > 0:
+            free_pts.append(x)
+            free_t.append(int(o.t_ns))
+            key = tuple(np.floor(x / p.free_voxel_m).astype(np.int64).tolist())
+            if key in free_seen:
+                continue
+            free_seen.add(key)
+            rows_X.append(x)
+            rows_y.append(1.0)
+            rows_s2.append(p.free_noise**2)
+            rows_id.append(o.id)
+            rows_g.append(-1)
+            continue
+        k = _group_key(o)
+        g = keys.get(k)
+        if g is None:
+            g = keys[k] = len(g_ids)
+            g_ids.append([])
+            g_event.append(int(o.event_id))
+            g_prior.append([])
+            g_t.append([])
+            g_contacts.append([])
+        g_ids[g].append(o.id)
+        g_t[g].append(int(o.t_ns))
+        if math.isfinite(o.p_false):
+            g_prior[g].append(float(o.p_false))
+        if o.label == 0:
+            g_contacts[g].append(x)
+        sig = o.sigma_m if math.isfinite(o.sigma_m) else 0.0
+        rows_X.append(x)
+        rows_y.append(0.0 if o.label == 0 else p.inside_value)
+        rows_s2.append(p.contact_noise**2 + (slope * sig) ** 2)
+        rows_id.append(o.id)
+        rows_g.append(g)
+    d = len(rows_X[0]) if rows_X else 3
+    X = np.asarray(rows_X, dtype=np.float64).reshape(-1, d)
+    prior = np.array([float(np.mean(v)) if v else p.prior_false for v in g_prior], dtype=np.float64)
+    t_span = [(min(v), max(v)) for v in g_t]
+    centre = [
+        np.mean(c, axis=0) if c else np.full(d, np.nan) for c in g_contacts
+    ]  # contact centroid of each group
+    burst = _bursts(t_span, centre, p)
+    swept = _swept(g_contacts, t_span, np.asarray(free_pts).reshape(-1, d),
+                   np.asarray(free_t, dtype=np.int64), p)  # fmt: skip
+    groups = Groups(
+        row_group=np.asarray(rows_g, dtype=np.int64),
+        prior_false=prior,
+        burst=burst,
+        extra_llr=np.where(swept, p.sweep_llr, 0.0),
+    )
+    return TrainingSet(
+        X=X,
+        y=np.asarray(rows_y, dtype=np.float64),
+        noise_var=np.asarray(rows_s2, dtype=np.float64),
+        row_ids=np.asarray(rows_id, dtype=np.int64),
+        groups=groups,
+        event_ids=np.asarray(g_event, dtype=np.int64),
+        group_ids=tuple(np.asarray(v, dtype=np.int64) for v in g_ids),
+        swept=swept,
+        n_raw=len(obs),
+    )
+
+
+def _bursts(
+    t_span: list[tuple[int, int]], centre: list[np.ndarray], p: TrainingPolicy
+) -> np.ndarray:
+    """Chain groups closer than ``burst_gap_s`` and ``burst_radius_m`` into bursts."""
+    G = len(t_span)
+    parent = list(range(G))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    order = sorted(range(G), key=lambda g: t_span[g][0])
+    gap = int(p.burst_gap_s * 1e9)
+    for a_i, a in enumerate(order):
+        for b in order[a_i + 1 :]:
+            if t_span[b][0] - t_span[a][1] > gap:
+                break
+            ca, cb = centre[a], centre[b]
+            if np.isfinite(ca).all() and np.isfinite(cb).all():
+                if float(np.linalg.norm(ca - cb)) <= p.burst_radius_m:
+                    parent[find(b)] = find(a)
+    roots = {r: k for k, r in enumerate(sorted({find(g) for g in range(G)}))}
+    return np.array([roots[find(g)] for g in range(G)], dtype=np.int64)
+
+
+def _swept(
+    contacts, t_span, free_pts: np.ndarray, free_t: np.ndarray, p: TrainingPolicy
+) -> np.ndarray:
+    """Which groups' contact points lie inside the body at a free-space sample away from them."""
+    G = len(contacts)
+    out = np.zeros(G, dtype=bool)
+    if G == 0 or free_pts.shape[0] == 0 or free_pts.shape[1] != 3:
+        return out
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(free_pts)
+    r = p.body_radius_m - p.sweep_tolerance_m
+    h = p.body_half_height_m - p.sweep_tolerance_m
+    if r <= 0:
+        return out
+    excl = int(p.sweep_exclude_s * 1e9)
+    for g in range(G):
+        if not contacts[g]:
+            continue
+        lo, hi = t_span[g][0] - excl, t_span[g][1] + excl
+        for c in contacts[g]:
+            for j in tree.query_ball_point(c, math.hypot(r, max(h, 0.0))):
+                if lo <= free_t[j] <= hi:
+                    continue
+                dx = free_pts[j] - c
+                if math.hypot(dx[0], dx[1]) < r and abs(dx[2]) < h:
+                    out[g] = True
+                    break
+            if out[g]:
+                break
+    return out
