@@ -195,6 +195,18 @@ class Mapper:
         return n
 
     @classmethod
+    def from_config(cls, config) -> Mapper:
+        """The mapper of a station :class:`~groundstation.config.Config` (its ``mapper``,
+        ``mapping``, ``surface`` and ``vehicle`` sections and the detector's ``d_in``)."""
+        return cls(
+            config.mapper,
+            config.mapping,
+            config.surface,
+            vehicle=config.vehicle,
+            internal_depth_m=config.contact.internal_depth_m,
+        )
+
+    @classmethod
     def restore(cls, observations: Iterable[Observation], *args, **kwargs) -> Mapper:
         """A mapper rebuilt from the observations seen before a restart (no refit yet)."""
         m = cls(*args, **kwargs)

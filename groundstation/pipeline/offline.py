@@ -182,7 +182,7 @@ def run_offline(
     t_wall = time.perf_counter()
     start_ns, duration, truth = recording_span(log_path)
     stage = ContactStage(cfg.contact, cfg.alignment, vehicle=cfg.vehicle, batch=64)
-    mapper = Mapper(cfg.mapper, cfg.mapping, cfg.surface)
+    mapper = Mapper.from_config(cfg)
     events: list[Envelope] = []
     observations: list[Observation] = []
     fits: list[FitResult] = []

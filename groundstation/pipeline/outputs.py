@@ -1,9 +1,11 @@
 """Files of a pipeline run: ``mesh.ply``, ``observations.csv``, ``report.json``, ``snapshots/``.
 
 - ``mesh.ply``: the last good mesh, vertex colours = predictive std (``mapping.surface``).
-- ``observations.csv``: ``id, x, y, z, label, t_s, event_id, u, flag`` per observation; ``t_s`` is
-  the observation's data (source) time in seconds from the log start; ``u``/``flag`` from the
-  final fit (empty when the observation was not in a fit).
+- ``observations.csv``: ``id, x, y, z, label, t_s, event_id, u, flag, p_false, dv_mps, rebound,
+  sigma_m, p_false_map`` per observation; ``t_s`` is the observation's data (source) time in
+  seconds from the log start; ``u``/``flag`` from the final fit (empty when the observation was not
+  in a fit); ``p_false``, ``dv_mps``, ``rebound``, ``sigma_m``: the detector's evidence for its
+  event (empty when none); ``p_false_map``: the map's posterior that its event is false.
 - ``report.json``: :func:`build_report` (NaN written as ``null``).
 - ``snapshots/snapshot_<fit>.png``: the meshes of the last few fits with the observations
   coloured by flag state (``viewer.headless.render_snapshot``, matplotlib projections).
@@ -91,21 +93,34 @@ def write_report(report: dict, path: str | Path) -> Path:
 def write_observations_csv(result: PipelineResult, path: str | Path) -> Path:
     """``observations.csv`` (columns in the module docstring)."""
     fit = result.final
-    lookup: dict[int, tuple[float, int]] = {}
+    lookup: dict[int, tuple[float, int, float]] = {}
     if fit is not None:
-        for i, u, f in zip(fit.ids.tolist(), fit.u.tolist(), fit.flags.tolist(), strict=True):
-            lookup[i] = (u, f)
+        post = fit.p_false if fit.p_false is not None else np.full(len(fit.ids), np.nan)
+        for i, u, f, p in zip(
+            fit.ids.tolist(), fit.u.tolist(), fit.flags.tolist(), post.tolist(), strict=True
+        ):
+            lookup[i] = (u, f, p)
     path = Path(path)
+
+    def num(v, spec: str) -> str:
+        return "" if v is None or not math.isfinite(v) else format(v, spec)
+
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["id", "x", "y", "z", "label", "t_s", "event_id", "u", "flag"])
+        w.writerow([
+            "id", "x", "y", "z", "label", "t_s", "event_id", "u", "flag",
+            "p_false", "dv_mps", "rebound", "sigma_m", "p_false_map",
+        ])  # fmt: skip
         for o in sorted(result.observations, key=lambda o: o.id):
-            u, f = lookup.get(o.id, (None, None))
+            u, f, p = lookup.get(o.id, (None, None, None))
             x, y, z = (float(v) for v in o.position)
+            evidence = o.label != 1 and math.isfinite(o.p_false)
             w.writerow([
                 o.id, f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", int(o.label),
                 f"{(o.t_ns - result.start_ns) / 1e9:.4f}", o.event_id,
-                "" if u is None else f"{u:.6g}", "" if f is None else int(f),
+                num(u, ".6g"), "" if f is None else int(f),
+                num(o.p_false, ".4f"), num(o.dv_mps, ".4f"),
+                int(o.rebound) if evidence else "", num(o.sigma_m, ".4f"), num(p, ".4f"),
             ])  # fmt: skip
     return path
 

@@ -14,6 +14,16 @@ Metrics (all distances in metres)
     The paper's band metric: mean distance to the true surface of the points where the
     estimate puts its surface. The mesh vertices are the points with mu = 0 on the grid (the
     band |mu| < 0.01 in the limit of a fine grid), so it is their mean distance.
+``mesh_to_truth_median_m``
+    Median distance of the mesh (area-uniform samples) to the true surface.
+``truth_to_mesh_median_m``, ``missing_share``
+    Over the touched true surface (within ``touched_radius_m`` of a true touch): median distance
+    to the mesh, and the share farther than ``missing_m`` (0.1 m) from it: surface the map lacks.
+``phantom_area_m2``, ``phantom_max_patch_m2``
+    Mesh faces farther than ``phantom_m`` (0.15 m) from the true surface, joined into patches
+    by shared vertices: their total area and the largest patch's (surface the map invents).
+``gust_events_flagged``, ``touch_events_flagged``
+    Shares of detected events matched to truth gusts / touches that the map flags false.
 ``fp_precision``, ``fp_recall``
     Detected contact events are matched to truth events by time: a detected event whose start
     lies in ``[start - 0.1 s, end + 0.3 s]`` of a truth event matches it (nearest start wins).
@@ -65,14 +75,30 @@ def match_events(events: Sequence[DetectedEvent], truth: dict) -> dict[int, tupl
 
 
 def false_positive_scores(events: Sequence[DetectedEvent], truth: dict) -> dict[str, float]:
-    """``fp_precision``, ``fp_recall``, ``detection_recall`` and the counts behind them."""
+    """``mesh_to_truth_median_m``
+        Median distance of the mesh (area-uniform samples) to the true surface.
+    ``truth_to_mesh_median_m``, ``missing_share``
+        Over the touched true surface (within ``touched_radius_m`` of a true touch): median
+        distance to the mesh, and the share farther than ``missing_m`` (0.1 m) from it: surface
+        the map lacks.
+    ``phantom_area_m2``, ``phantom_max_patch_m2``
+        Mesh faces farther than ``phantom_m`` (0.15 m) from the true surface, joined into patches
+        by shared vertices: their total area and the largest patch's (surface the map invents).
+    ``gust_events_flagged``, ``touch_events_flagged``
+        Shares of detected events matched to truth gusts / touches that the map flags false.
+    ``fp_precision``, ``fp_recall``, ``detection_recall`` and the counts behind them."""
     m = match_events(events, truth)
     false = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "gust"}
     flagged = {e.id for e in events if e.flagged}
     touches = [k for k, c in enumerate(truth.get("contacts", [])) if c["kind"] == "touch"]
     found = {v[0] for v in m.values() if v is not None and v[1] == "touch"}
     tp = len(false & flagged)
+    gusts = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "gust"}
+    touched = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "touch"}
     return {
+        "gust_events_flagged": len(gusts & flagged) / len(gusts) if gusts else math.nan,
+        "touch_events_flagged": len(touched & flagged) / len(touched) if touched else math.nan,
+        "events_touch": len(touched),
         "fp_precision": tp / len(flagged) if flagged else math.nan,
         "fp_recall": tp / len(false) if false else math.nan,
         "detection_recall": len(found & set(touches)) / len(touches) if touches else math.nan,
@@ -117,10 +143,19 @@ def surface_scores(
     touched_radius_m: float = 0.5,
     spacing_m: float = 0.02,
     seed: int = 0,
+    missing_m: float = 0.1,
+    phantom_m: float = 0.15,
 ) -> dict[str, float]:
     """``chamfer_m``, ``chamfer_full_m`` and ``shape_error_m`` (module docstring); NaN when
     there is no mesh."""
-    nan = {"chamfer_m": math.nan, "chamfer_full_m": math.nan, "shape_error_m": math.nan}
+    nan = {
+        k: math.nan
+        for k in (
+            "chamfer_m", "chamfer_full_m", "shape_error_m", "mesh_to_truth_median_m",
+            "truth_to_mesh_median_m", "phantom_area_m2", "phantom_max_patch_m2",
+        )
+    }  # fmt: skip
+    nan["missing_share"] = 1.0
     if mesh is None or mesh.is_empty:
         return nan
     scene = _scene(truth)
@@ -141,11 +176,50 @@ def surface_scores(
     verts = mesh.vertices
     if len(verts) > 20000:
         verts = verts[rng.choice(len(verts), 20000, replace=False)]
+    from scipy.spatial import cKDTree
+
+    to_truth = np.abs(scene.signed_distance(mesh_pts))
+    if b.size:
+        d_b, _ = cKDTree(mesh_pts).query(b)
+        t2m, missing = float(np.median(d_b)), float(np.mean(d_b > missing_m))
+    else:
+        t2m, missing = math.nan, math.nan
+    phantom, biggest = phantom_patches(mesh, scene, phantom_m)
     return {
         "chamfer_m": chamfer_distance(a, b),
         "chamfer_full_m": chamfer_distance(mesh_pts, true_pts),
         "shape_error_m": float(np.mean(np.abs(scene.signed_distance(verts)))),
+        "mesh_to_truth_median_m": float(np.median(to_truth)),
+        "truth_to_mesh_median_m": t2m,
+        "missing_share": missing,
+        "phantom_area_m2": phantom,
+        "phantom_max_patch_m2": biggest,
     }
+
+
+def phantom_patches(mesh: SurfaceMesh, scene, phantom_m: float) -> tuple[float, float]:
+    """Total area and largest patch area (m^2) of the faces whose centroid lies farther than
+    ``phantom_m`` from the true surface (patches: faces sharing a vertex)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    v, f = mesh.vertices, mesh.faces
+    cent = v[f].mean(axis=1)
+    far = np.abs(scene.signed_distance(cent)) > phantom_m
+    if not far.any():
+        return 0.0, 0.0
+    ff = f[far]
+    area = 0.5 * np.linalg.norm(
+        np.cross(v[ff[:, 1]] - v[ff[:, 0]], v[ff[:, 2]] - v[ff[:, 0]]), axis=1
+    )
+    k = ff.shape[0]
+    # faces and vertices in one graph: face k -- its three vertices
+    rows = np.repeat(np.arange(k), 3)
+    cols = k + ff.reshape(-1)
+    g = coo_matrix((np.ones(rows.size), (rows, cols)), shape=(k + len(v), k + len(v)))
+    _, labels = connected_components(g, directed=False)
+    patch = np.bincount(labels[:k], weights=area)
+    return float(area.sum()), float(patch.max())
 
 
 def _true_area(scene) -> float:

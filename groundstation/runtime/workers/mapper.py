@@ -99,7 +99,7 @@ class MapperProcess:
         self.recording, self.wait_subscribers = recording, wait_subscribers
         self.ctx = context or zmq.Context()
         self.pub = Publisher(topics=TOPICS, context=self.ctx, **session.publisher_kwargs(name))
-        self.mapper = Mapper(config.mapper, config.mapping, config.surface)
+        self.mapper = Mapper.from_config(config)
         self.inbox: queue.Queue = queue.Queue()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None

@@ -1,0 +1,175 @@
+"""Event-mixture GPIS: oracles (dense GP, explicit leave-burst-out refits) and the decisions it
+must make on planted cases."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from groundstation.contact.detector import Observation
+from groundstation.mapping.kernels import se_kernel
+from groundstation.mapping.mixture import EventMixtureGPIS, Groups, KernelBounds
+from groundstation.mapping.training import TrainingPolicy, build_training_set
+
+BOUNDS = KernelBounds((0.1, 0.5), (0.05, 1.0))
+
+
+def dense_gp(X, y, s2, Xq, ell, sf2, mu0=0.0):
+    """Textbook GP mean and covariance with per-row noise (np.linalg.solve)."""
+    K = se_kernel(X, X, ell, sf2)
+    C = K + np.diag(s2)
+    Kq = se_kernel(Xq, X, ell, sf2)
+    mean = mu0 + Kq @ np.linalg.solve(C, y - mu0)
+    cov = se_kernel(Xq, Xq, ell, sf2) - Kq @ np.linalg.solve(C, Kq.T)
+    return mean, cov
+
+
+def toy(seed=0, n_free=60):
+    """A flat wall x = 0 (contacts + internal points, one event each), free points in front."""
+    rng = np.random.default_rng(seed)
+    X, y, g = [], [], []
+    for e in range(12):
+        c = np.array([0.0, rng.uniform(0, 1.5), rng.uniform(0, 1.5)])
+        X += [c, c - [0.1, 0, 0]]
+        y += [0.0, -0.5]
+        g += [e, e]
+    for _ in range(n_free):
+        X.append([rng.uniform(0.3, 1.0), rng.uniform(-0.2, 1.7), rng.uniform(-0.2, 1.7)])
+        y.append(1.0)
+        g.append(-1)
+    return np.array(X), np.array(y), np.array(g)
+
+
+def groups(g, prior, burst=None, extra=None):
+    G = int(g.max()) + 1
+    return Groups(
+        row_group=g,
+        prior_false=np.full(G, prior) if np.isscalar(prior) else np.asarray(prior, float),
+        burst=np.arange(G) if burst is None else np.asarray(burst),
+        extra_llr=np.zeros(G) if extra is None else np.asarray(extra, float),
+    )
+
+
+def test_with_every_event_trusted_it_is_the_plain_gp():
+    X, y, g = toy()
+    s2 = np.where(g < 0, 0.09, 0.0025)
+    est = EventMixtureGPIS(lengthscale=0.3, signal_var=0.6, bounds=BOUNDS, learn_kernel=False)
+    est.fit(X, y, s2, groups(g, 1e-6))
+    Xq = np.random.default_rng(1).uniform(-0.2, 1.0, (40, 3))
+    mean, cov = dense_gp(X, y, s2, Xq, 0.3, 0.6)
+    m, s = est.predict(Xq, return_std=True)
+    assert np.allclose(m, mean, atol=1e-8)
+    assert np.allclose(s, np.sqrt(np.maximum(np.diag(cov), 0)), atol=1e-7)
+
+
+def test_leave_burst_out_residuals_equal_an_explicit_refit_without_the_burst():
+    X, y, g = toy()
+    s2 = np.where(g < 0, 0.09, 0.0025)
+    burst = np.array([0, 0, 0, 1, 1, 2, 3, 4, 5, 6, 7, 8])
+    est = EventMixtureGPIS(
+        lengthscale=0.3, signal_var=0.6, bounds=BOUNDS, learn_kernel=False, max_iter=1
+    )
+    est.fit(X, y, s2, groups(g, 1e-6, burst=burst))
+    # the llr of group 0 from leaving out groups 0-2 (its burst) by hand
+    out = np.isin(g, [0, 1, 2])
+    keep = ~out
+    r = 1e-4  # the priors are clipped there: the rest's rows carry that mixture noise
+    s2_eff = np.where(g < 0, s2, 1.0 / ((1 - r) / s2 + r / est.outlier_var))
+    mean, cov = dense_gp(X[keep], y[keep], s2_eff[keep], X[g == 0], 0.3, 0.6)
+    e = y[g == 0] - mean
+
+    def logn(e, S):
+        quad = e @ np.linalg.solve(S, e)
+        return -0.5 * (quad + np.linalg.slogdet(S)[1] + e.size * math.log(2 * math.pi))
+
+    llr = logn(e, cov + np.eye(2) * est.outlier_var) - logn(e, cov + np.diag(s2[g == 0]))
+    assert est.llr_[0] == pytest.approx(llr, rel=1e-6, abs=1e-6)
+
+
+def test_a_false_contact_in_free_space_is_flagged_and_a_doubted_touch_on_the_wall_is_not():
+    X, y, g = toy()
+    # event 12: a 'contact' in the middle of the free points; event 0 doubted by its prior
+    fake = np.array([0.6, 0.7, 0.7])
+    X = np.vstack([X, fake, fake - [0.1, 0, 0]])
+    y = np.concatenate([y, [0.0, -0.5]])
+    g = np.concatenate([g, [12, 12]])
+    s2 = np.where(g < 0, 0.09, 0.0025)
+    prior = np.full(13, 0.1)
+    prior[0] = 0.9
+    est = EventMixtureGPIS(lengthscale=0.3, signal_var=0.6, bounds=BOUNDS)
+    est.fit(X, y, s2, groups(g, prior))
+    assert est.posterior_false_[12] > 0.9
+    assert est.posterior_false_[0] < 0.5
+    assert est.fit_.converged and est.fit_.n_flagged == 1
+
+
+def test_a_lone_touch_with_nothing_against_it_keeps_its_prior():
+    X, y, g = toy()
+    far = np.array([3.0, 3.0, 3.0])  # nothing within metres
+    X = np.vstack([X, far, far - [0.1, 0, 0]])
+    y = np.concatenate([y, [0.0, -0.5]])
+    g = np.concatenate([g, [12, 12]])
+    s2 = np.where(g < 0, 0.09, 0.0025)
+    est = EventMixtureGPIS(lengthscale=0.3, signal_var=0.6, bounds=BOUNDS)
+    est.fit(X, y, s2, groups(g, 0.1))
+    assert est.posterior_false_[12] < 0.5
+
+
+def test_a_cluster_cannot_vouch_for_itself_when_left_out_as_a_burst():
+    X, y, g = toy(n_free=0)
+    rng = np.random.default_rng(3)
+    spot = np.array([0.7, 0.7, 0.7])
+    rows, labs, grp = [], [], []
+    for k in range(8):  # 8 consistent false contacts at one spot, events 12..19
+        c = spot + rng.normal(0, 0.01, 3)
+        rows += [c, c - [0.1, 0, 0]]
+        labs += [0.0, -0.5]
+        grp += [12 + k, 12 + k]
+    # a free-space pass through the spot (the drone flew there before)
+    path = [spot + [dx, 0.0, 0.0] for dx in np.linspace(-0.2, 0.3, 6)]
+    X = np.vstack([X, rows, path])
+    y = np.concatenate([y, labs, np.ones(len(path))])
+    g = np.concatenate([g, grp, -np.ones(len(path), int)])
+    s2 = np.where(g < 0, 0.09, 0.0025)
+    burst_single = np.arange(20)
+    burst_joint = np.concatenate([np.arange(12), np.full(8, 12)])
+    est = EventMixtureGPIS(lengthscale=0.3, signal_var=0.6, bounds=BOUNDS, learn_kernel=False)
+    alone = est.fit(X, y, s2, groups(g, 0.1, burst=burst_single)).posterior_false_[12:]
+    joint = est.fit(X, y, s2, groups(g, 0.1, burst=burst_joint)).posterior_false_[12:]
+    assert np.all(joint > 0.5)  # left out together, the path refutes them
+    assert np.mean(alone > 0.5) < np.mean(joint > 0.5)  # one by one they vouch for each other
+
+
+def test_kernel_learning_stays_in_its_bounds():
+    X, y, g = toy()
+    s2 = np.where(g < 0, 0.09, 0.0025)
+    tight = KernelBounds((0.2, 0.25), (0.3, 0.4))
+    est = EventMixtureGPIS(lengthscale=1.0, signal_var=5.0, bounds=tight)
+    est.fit(X, y, s2, groups(g, 0.1))
+    assert 0.2 <= est.lengthscale_ <= 0.25 and 0.3 <= est.signal_var_ <= 0.4
+
+
+def obs(i, t, x, label, event, p=math.nan):
+    return Observation(i, int(t * 1e9), np.asarray(x, float), float(label), np.zeros(3), event,
+                       0.0, p_false=p, sigma_m=0.01)  # fmt: skip
+
+
+def test_training_set_groups_bursts_priors_and_the_swept_volume():
+    policy = TrainingPolicy(body_radius_m=0.2, body_half_height_m=0.05, free_voxel_m=0.1)
+    o = [
+        obs(0, 0.0, [0, 0, 1], 0, 0, 0.2), obs(1, 0.0, [-0.1, 0, 1], -1, 0, 0.2),
+        obs(2, 1.0, [0, 0.1, 1], 0, 1), obs(3, 1.0, [-0.1, 0.1, 1], -1, 1),
+        obs(4, 20.0, [0, 3, 1], 0, 2, 0.9), obs(5, 20.0, [-0.1, 3, 1], -1, 2, 0.9),
+        # free space: the body (r 0.2) swept through event 2's contact at t = 10 s
+        obs(6, 10.0, [0.05, 3.0, 1.0], 1, -1), obs(7, 10.01, [0.06, 3.0, 1.0], 1, -1),
+        obs(8, 5.0, [1.0, 0.0, 1.0], 1, -1),
+    ]  # fmt: skip
+    ts = build_training_set(o, policy)
+    assert len(ts) == 8  # two free points share a 0.1 m voxel
+    assert list(ts.groups.prior_false) == [0.2, policy.prior_false, 0.9]
+    b = ts.groups.burst
+    assert b[0] == b[1] != b[2]  # 1 s and 0.1 m apart: one burst; event 2 far off
+    assert list(ts.swept) == [False, False, True]
+    assert ts.groups.extra_llr[2] == policy.sweep_llr
