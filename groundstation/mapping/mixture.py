@@ -21,11 +21,13 @@ Fit (an EM on the two-component mixture, one responsibility per group)
    for blocks; ALGORITHM.md §12). For each group g of the burst, the log likelihood ratio of
    false against true is
 
-       llr_g = log N(e_g; 0, V_g + s_out^2 I) - log N(e_g; 0, V_g + S_g)
+       llr_g = log N(e_g; 0, v_g + s_out^2) - log N(e_g; 0, v_g + s_g^2)
 
-   with ``V_g`` the latent predictive covariance of its rows (``P_BB^-1`` minus their current
-   noise). Leaving out the whole burst is what makes a cluster of consistent false contacts (a
-   gust that keeps hitting one spot) unable to vouch for itself.
+   on the group's mean residual ``e_g`` (its rows share one placement: they are one piece of
+   evidence), with ``v_g`` its latent predictive variance (from ``P_BB^-1`` minus the rows'
+   current noise) and ``s_g^2`` its rows' mean noise. Leaving out the whole burst is what
+   makes a cluster of consistent false contacts (a gust that keeps hitting one spot) unable to
+   vouch for itself.
 4. ``r_g = sigmoid(logit pi_g + llr_g + extra_g)`` (``extra_g``: other evidence, e.g. the
    body's swept volume, ``mapping/training.py``), then back to 2 until no ``r_g`` moves by
    ``tol``.
@@ -167,17 +169,9 @@ class Groups:
             raise InputDataError("groups: a row refers to a group that does not exist")
 
 
-def _gauss_logpdf(e: np.ndarray, S: np.ndarray) -> float:
-    """log N(e; 0, S) for a small SPD matrix S."""
-    try:
-        L = np.linalg.cholesky(S)
-    except np.linalg.LinAlgError:
-        w, V = np.linalg.eigh(S)
-        w = np.maximum(w, 1e-12)
-        z = V.T @ e
-        return float(-0.5 * (np.sum(z * z / w) + np.sum(np.log(w)) + e.size * LOG_2PI))
-    z = np.linalg.solve(L, e)
-    return float(-0.5 * (z @ z) - np.sum(np.log(np.diag(L))) - 0.5 * e.size * LOG_2PI)
+def _log_normal(e: float, var: float) -> float:
+    """log N(e; 0, var)."""
+    return -0.5 * (e * e / var + math.log(var) + LOG_2PI)
 
 
 class EventMixtureGPIS:
@@ -348,7 +342,15 @@ class EventMixtureGPIS:
         return np.split(rows, cuts)
 
     def _leave_burst_out(self, fac: BFactor, w, s2, rg, bursts, n_groups) -> np.ndarray:
-        """llr (false vs true) of every group from its burst's leave-out residual."""
+        """llr (false vs true) of every group from its burst's leave-out residual.
+
+        A group's rows are not independent evidence: its contact samples lie a few
+        millimetres apart and its internal point is the contact moved by ``d_in``, true or
+        false alike. So each group is judged on its mean residual ``e_g = mean_i e_i``, whose
+        latent variance is ``v_g = mean_ij V_ij``: ``N(e_g; 0, v_g + s_g^2)`` if true
+        (``s_g^2``: the mean row noise, the rows sharing one placement error) against
+        ``N(e_g; 0, v_g + s_out^2)`` if false.
+        """
         llr = np.zeros(n_groups)
         P, a = fac.P, fac.a
         for rows in bursts:
@@ -359,14 +361,13 @@ class EventMixtureGPIS:
                 Cb = np.linalg.pinv(Pbb)
             e = Cb @ a[rows]  # y_B - E[y_B | rest]
             V = Cb - np.diag(1.0 / w[rows])  # latent predictive covariance of f_B | rest
-            V = 0.5 * (V + V.T)
             g_rows = rg[rows]
             for g in np.unique(g_rows):
                 k = np.flatnonzero(g_rows == g)
-                Vg, eg = V[np.ix_(k, k)], e[k]
-                true_ll = _gauss_logpdf(eg, Vg + np.diag(s2[rows[k]]))
-                false_ll = _gauss_logpdf(eg, Vg + self.outlier_var * np.eye(k.size))
-                llr[g] = false_ll - true_ll
+                eg = float(e[k].mean())
+                vg = max(float(V[np.ix_(k, k)].mean()), 0.0)
+                sg = float(s2[rows[k]].mean())
+                llr[g] = _log_normal(eg, vg + self.outlier_var) - _log_normal(eg, vg + sg)
         return llr
 
     def _kernel_step(self, D, w, resid, ell, sf2) -> tuple[float, float]:
