@@ -51,6 +51,20 @@ def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--snapshots", type=int, default=3, help="PNG snapshots of the last N fits")
     parser.add_argument("--timeout", type=float, default=1800.0, help="multi-process time limit, s")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
+    parser.add_argument(
+        "--map",
+        choices=("live", "final"),
+        default="live",
+        help="live: refit on the live cadence (default); final: detect over the whole log, then "
+        "fit once on everything (fastest when only the final map matters)",
+    )
+    parser.add_argument(
+        "--checkpoints",
+        type=int,
+        default=0,
+        metavar="N",
+        help="with --map final: also fit N times at evenly spaced log times",
+    )
 
 
 def _progress_offline(quiet: bool):
@@ -78,6 +92,13 @@ def run_replay(args: argparse.Namespace) -> int:
     if args.snapshots < 0:
         raise ConfigError(f"--snapshots must be >= 0, got {args.snapshots}")
     config = load_config(args.config, args.set)  # validate once, here
+    if args.checkpoints < 0:
+        raise ConfigError(f"--checkpoints must be >= 0, got {args.checkpoints}")
+    if args.map == "final" and (args.processes or math.isfinite(args.speed)):
+        raise ConfigError(
+            "--map final runs in process at full speed",
+            hint="drop --processes and --speed, or use --map live",
+        )
     if args.processes or math.isfinite(args.speed):
         from groundstation.pipeline.multiprocess import run_multiprocess
 
@@ -96,7 +117,13 @@ def run_replay(args: argparse.Namespace) -> int:
     else:
         from groundstation.pipeline.offline import run_offline
 
-        result = run_offline(str(log), config, progress=_progress_offline(args.quiet))
+        result = run_offline(
+            str(log),
+            config,
+            progress=_progress_offline(args.quiet),
+            map_mode=args.map,
+            checkpoints=args.checkpoints,
+        )
     from groundstation.pipeline.outputs import build_report, write_outputs
 
     report = (

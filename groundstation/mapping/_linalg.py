@@ -80,7 +80,7 @@ class BFactor:
 
 def factorize(
     K: np.ndarray,
-    D: np.ndarray,
+    D: np.ndarray | None,
     w: np.ndarray,
     r: np.ndarray,
     mu0: float,
@@ -93,8 +93,10 @@ def factorize(
     ----------
     K : (n, n) float64
         Kernel matrix at the training inputs (not modified).
-    D : (n, n) float64, metres^2
-        Squared distances between the training inputs (for ``dK/dlog l = K o D / l^2``).
+    D : (n, n) float64, metres^2, or None
+        Squared distances between the training inputs (for ``dK/dlog l = K o D / l^2``);
+        None skips the kernel gradient (``grad`` is then zero), e.g. for a kernel matrix with
+        derivative rows, whose gradient this formula does not give.
     w : (n,) float64, > 0
         Noise precisions ``E[1/tau_i]`` (GPIS: ``1/noise_var``).
     r : (n,) float64
@@ -146,15 +148,18 @@ def factorize(
     # ALGORITHM.md §3: A_ii = sum_j [B^-1]_ij w_j^1/2 K_ji / w_i^1/2 = (P o K 1)_i / w_i.
     diag_A = np.maximum(rs / w, 0.0)
     sum_PK = float(rs.sum())
-    T *= D  # lower triangle of P o K o D; D has a zero diagonal, so the full sum is twice this
-    sum_PKD = 2.0 * float(T.sum())
-    np.multiply(K, D, out=T)
-    aKDa = float(a @ (T @ a))
-    del T
-    l2 = lengthscale * lengthscale
-    # ALGORITHM.md M3: dL/dtheta_j = 1/2 tr[(a a^T - P) dK/dtheta_j].
     aKa = float(a @ Ka)
-    grad = np.array([0.5 * (aKDa - sum_PKD) / l2, 0.5 * (aKa - sum_PK)])
+    if D is None:
+        grad = np.zeros(2)
+    else:
+        T *= D  # lower triangle of P o K o D; D has a zero diagonal: the full sum is twice this
+        sum_PKD = 2.0 * float(T.sum())
+        np.multiply(K, D, out=T)
+        aKDa = float(a @ (T @ a))
+        l2 = lengthscale * lengthscale
+        # ALGORITHM.md M3: dL/dtheta_j = 1/2 tr[(a a^T - P) dK/dtheta_j].
+        grad = np.array([0.5 * (aKDa - sum_PKD) / l2, 0.5 * (aKa - sum_PK)])
+    del T
     return BFactor(
         L=L,
         sw=sw,

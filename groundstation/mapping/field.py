@@ -130,6 +130,8 @@ def narrow_band_field(
     *,
     safety: float = 2.0,
     chunk_rows: int = 32768,
+    active: Callable[[np.ndarray], np.ndarray] | None = None,
+    fill: float = 1.0,
 ) -> BandField:
     """Evaluate ``predict_mean`` coarse-to-fine, only where the zero set can be.
 
@@ -149,6 +151,12 @@ def narrow_band_field(
         Factor on the local slope estimate (larger refines more; >= 1).
     chunk_rows : int
         Points per ``predict_mean`` call.
+    active : callable, optional
+        ``active(points (m, d)) -> (m,) bool``: where the surface can be. Other nodes are not
+        evaluated and get ``fill`` (so no band forms there); the caller drops the faces they
+        make.
+    fill : float
+        Value of inactive nodes.
 
     Returns
     -------
@@ -167,14 +175,18 @@ def narrow_band_field(
 
     def evaluate(idx_fine: np.ndarray) -> np.ndarray:
         nonlocal n_eval
-        pts = grid.index_to_world(idx_fine)
-        out = np.empty(pts.shape[0])
+        pts_all = grid.index_to_world(idx_fine)
+        out = np.full(pts_all.shape[0], float(fill))
+        on = np.ones(pts_all.shape[0], dtype=bool) if active is None else active(pts_all)
+        pts = pts_all[on]
+        vals_all = np.empty(pts.shape[0])
         for start in range(0, pts.shape[0], chunk_rows):
             stop = min(start + chunk_rows, pts.shape[0])
             vals = np.asarray(predict_mean(pts[start:stop]), dtype=np.float64).reshape(-1)
             if vals.shape[0] != stop - start or not np.all(np.isfinite(vals)):
                 raise GridError("predict_mean returned a wrong number of values or NaN/inf")
-            out[start:stop] = vals
+            vals_all[start:stop] = vals
+        out[on] = vals_all
         n_eval += pts.shape[0]
         return out
 

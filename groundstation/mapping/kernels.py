@@ -104,3 +104,60 @@ def se_grad_log_params(
     dK_dlog_l, dK_dlog_sf2 : (n, m) float64
     """
     return K * D / (lengthscale * lengthscale), K
+
+
+def se_mixed(
+    X1: np.ndarray,
+    V1: np.ndarray,
+    X2: np.ndarray,
+    V2: np.ndarray,
+    lengthscale: float,
+    signal_var: float,
+    center: np.ndarray | None = None,
+) -> np.ndarray:
+    """Covariances of values and directional derivatives of a GP with the SE kernel.
+
+    Row i of ``X1`` is the value ``f(x_i)`` when ``V1[i] = 0``, else the derivative of f at
+    ``x_i`` along the unit vector ``V1[i]`` (the same for ``X2``, ``V2``). With ``a = x - x'``
+    and ``k = k(x, x')``::
+
+        cov(f(x), f(x'))                 = k
+        cov(f(x), d_v f(x'))             = k (a . v) / l^2
+        cov(d_u f(x), f(x'))             = -k (a . u) / l^2
+        cov(d_u f(x), d_v f(x'))         = k [(u . v) / l^2 - (a . u)(a . v) / l^4]
+
+    Parameters
+    ----------
+    X1 : (n, d), V1 : (n, d), X2 : (m, d), V2 : (m, d) float64
+    lengthscale, signal_var : float
+    center : (d,) float64, optional
+        Passed to :func:`sq_dists`.
+
+    Returns
+    -------
+    K : (n, m) float64
+    """
+    X1 = np.asarray(X1, dtype=np.float64)
+    X2 = np.asarray(X2, dtype=np.float64)
+    V1 = np.asarray(V1, dtype=np.float64)
+    V2 = np.asarray(V2, dtype=np.float64)
+    K = se_from_sq_dists(sq_dists(X1, X2, center=center), lengthscale, signal_var)
+    d1 = np.einsum("ij,ij->i", V1, V1) > 0.0
+    d2 = np.einsum("ij,ij->i", V2, V2) > 0.0
+    if not d1.any() and not d2.any():
+        return K
+    l2 = lengthscale * lengthscale
+    dot_v2 = X1 @ V2.T - np.einsum("ij,ij->i", X2, V2)[None, :]  # (x_i - x'_j) . v_j
+    dot_u1 = np.einsum("ij,ij->i", X1, V1)[:, None] - V1 @ X2.T  # (x_i - x'_j) . u_i
+    uv = V1 @ V2.T
+    vv = (~d1)[:, None] & (~d2)[None, :]
+    vd = (~d1)[:, None] & d2[None, :]
+    dv = d1[:, None] & (~d2)[None, :]
+    dd = d1[:, None] & d2[None, :]
+    factor = (
+        vv.astype(np.float64)
+        + np.where(vd, dot_v2 / l2, 0.0)
+        - np.where(dv, dot_u1 / l2, 0.0)
+        + np.where(dd, uv / l2 - dot_u1 * dot_v2 / (l2 * l2), 0.0)
+    )
+    return K * factor

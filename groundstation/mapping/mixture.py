@@ -13,8 +13,10 @@ and ``y_i ~ N(f_i, s_out^2)`` when false (``s_out`` on the label scale: nothing 
 Fit (an EM on the two-component mixture, one responsibility per group)
 ----------------------------------------------------------------------
 1. Responsibilities ``r_g = P(z_g = false | data)`` start at the priors (or the last fit's).
-2. The GP is fitted with per-row precisions ``w_i = (1 - r_g) / s_i^2 + r_g / s_out^2``
-   (E-step of q(f) for the mixture), factorised in the B form (``_linalg.factorize``).
+2. The GP is fitted with every group decided: precision ``1 / s_i^2`` for the rows of a group
+   with ``r_g <= 1/2``, ``1 / s_out^2`` for the others (a classification EM: the mean-field
+   expectation of the precision would let a 90 % false group still draw its phantom patch),
+   factorised in the B form (``_linalg.factorize``).
 3. Each *burst* (groups close in time and space: ``mapping/events.py``) is left out as a whole,
    in closed form from ``P = (K + W^-1)^-1``: ``e_B = P_BB^-1 a_B`` is the residual of the
    burst's labels from the prediction of the other data, ``P_BB^-1`` its covariance (R&W 5.4.2
@@ -30,7 +32,7 @@ Fit (an EM on the two-component mixture, one responsibility per group)
    vouch for itself.
 4. ``r_g = sigmoid(logit pi_g + llr_g + extra_g)`` (``extra_g``: other evidence, e.g. the
    body's swept volume, ``mapping/training.py``), then back to 2 until no ``r_g`` moves by
-   ``tol``.
+   ``tol`` (or until no decision changes and the posteriors move less than ``tol``).
 
 The kernel hyperparameters maximise the weighted GP's evidence ``log N(y | mu0, K + W^-1)`` with
 ``W`` fixed (L-BFGS-B on the M3 gradient), inside :class:`KernelBounds` (tied to the map's
@@ -49,11 +51,12 @@ import numpy as np
 from scipy.optimize import minimize
 
 from groundstation.errors import InputDataError, NotFittedError
-from groundstation.mapping._linalg import BFactor, FrozenPosterior, factorize
-from groundstation.mapping.kernels import se_from_sq_dists, sq_dists
+from groundstation.mapping._linalg import BFactor, factorize
+from groundstation.mapping.kernels import se_from_sq_dists, se_mixed, sq_dists
 
 LOG_2PI = math.log(2.0 * math.pi)
 _PRIOR_CLIP = 1e-4
+_EXCLUDED = 1e4  # a group decided false is fitted with this times the outlier variance
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,6 +172,57 @@ class Groups:
             raise InputDataError("groups: a row refers to a group that does not exist")
 
 
+@dataclasses.dataclass(frozen=True)
+class MixedPosterior:
+    """A fitted GP over value and derivative rows, frozen for grid evaluation:
+    mean = mu0 + k*^T a, var = k** - |L^-1 W^1/2 k*|^2 (k* from ``kernels.se_mixed``)."""
+
+    X: np.ndarray
+    V: np.ndarray
+    center: np.ndarray
+    a: np.ndarray
+    L: np.ndarray
+    sw: np.ndarray
+    mu0: float
+    lengthscale: float
+    signal_var: float
+
+    def predict(
+        self, Xs: np.ndarray, return_std: bool = False, chunk_mb: float = 64.0
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        """Mean (m,) and, if ``return_std``, latent std (m,) of f at ``Xs`` (m, d)."""
+        from scipy.linalg import solve_triangular
+
+        m_pts = Xs.shape[0]
+        n = self.X.shape[0]
+        mean = np.empty(m_pts)
+        std = np.empty(m_pts) if return_std else None
+        step = max(1, int(chunk_mb * 1e6 // (8.0 * n * (4 if return_std else 3))))
+        deriv = np.einsum("ij,ij->i", self.V, self.V) > 0.0
+        l2 = self.lengthscale * self.lengthscale
+        xv = np.einsum("ij,ij->i", self.X - self.center, self.V)  # (x_j - c) . v_j
+        for start in range(0, m_pts, step):
+            stop = min(start + step, m_pts)
+            Q = Xs[start:stop]
+            Ks = sq_dists(Q, self.X, center=self.center)
+            se_from_sq_dists(Ks, self.lengthscale, self.signal_var, out=Ks)
+            if deriv.any():  # cov(f(q), d_v f(x_j)) = k (q - x_j) . v_j / l^2
+                dot = (Q - self.center) @ self.V.T
+                dot -= xv[None, :]
+                dot *= 1.0 / l2
+                dot[:, ~deriv] = 1.0
+                Ks *= dot
+            mean[start:stop] = self.mu0 + Ks @ self.a
+            if std is not None:
+                Ks *= self.sw[None, :]
+                v = solve_triangular(self.L, Ks.T, lower=True, check_finite=False)
+                var = self.signal_var - np.einsum("ij,ij->j", v, v)
+                std[start:stop] = np.sqrt(np.maximum(var, 0.0))
+        if std is None:
+            return mean
+        return mean, std
+
+
 def _log_normal(e: float, var: float) -> float:
     """log N(e; 0, var)."""
     return -0.5 * (e * e / var + math.log(var) + LOG_2PI)
@@ -235,6 +289,7 @@ class EventMixtureGPIS:
         groups: Groups,
         start: np.ndarray | None = None,
         theta: tuple[float, float] | None = None,
+        directions: np.ndarray | None = None,
     ) -> EventMixtureGPIS:
         """Fit (module docstring).
 
@@ -249,6 +304,10 @@ class EventMixtureGPIS:
             Starting responsibilities (a warm start); default the priors.
         theta : (lengthscale, signal_var), optional
             Starting kernel hyperparameters (default the constructor's).
+        directions : (n, d) float64, optional
+            Zero for value rows; a unit vector makes the row the derivative of f along it
+            (``kernels.se_mixed``): a contact's tangent plane, with ``y = 0``. The kernel is
+            learnt on the value rows only.
 
         Returns
         -------
@@ -269,12 +328,17 @@ class EventMixtureGPIS:
         if r.shape != prior.shape:
             raise InputDataError("fit: start must have one entry per group")
         ell, sf2 = self.bounds.clip(*(theta or (self.lengthscale, self.signal_var)))
+        V = np.zeros_like(X) if directions is None else np.asarray(directions, dtype=np.float64)
+        if V.shape != X.shape:
+            raise InputDataError("fit: directions must have the shape of X")
+        is_val = np.einsum("ij,ij->i", V, V) == 0.0
         center = X.mean(axis=0)
-        D = sq_dists(X, X, center=center)
+        D = sq_dists(X[is_val], X[is_val], center=center)
         rg = groups.row_group
         in_group = rg >= 0
         bursts = self._burst_rows(groups)
         resid = y - self.prior_mean
+        resid = np.where(is_val, resid, y)  # a derivative's prior mean is 0
         converged = False
         fac: BFactor | None = None
         llr = np.zeros_like(r)
@@ -282,10 +346,10 @@ class EventMixtureGPIS:
         for it in range(1, self.max_iter + 1):
             w = self._precisions(s2, rg, in_group, r)
             if it == 1 and self.learn_kernel:
-                ell, sf2 = self._kernel_step(D, w, resid, ell, sf2)
-            K = se_from_sq_dists(D.copy(), ell, sf2)
-            fac = factorize(K, D, w, resid, self.prior_mean, ell, keep_P=True)
-            llr = self._leave_burst_out(fac, w, s2, rg, bursts, r.size)
+                ell, sf2 = self._kernel_step(D, w[is_val], resid[is_val], ell, sf2)
+            K = se_mixed(X, V, X, V, ell, sf2, center=center)
+            fac = factorize(K, None, w, resid, self.prior_mean, ell, keep_P=True)
+            llr = self._leave_burst_out(fac, w, s2, rg, bursts, r.size, is_val)
             logit = np.log(prior) - np.log1p(-prior) + llr + groups.extra_llr
             r_new = 1.0 / (1.0 + np.exp(-np.clip(logit, -50.0, 50.0)))
             delta = float(np.max(np.abs(r_new - r))) if r.size else 0.0
@@ -293,17 +357,17 @@ class EventMixtureGPIS:
             if delta < self.tol:
                 converged = True
                 break
-        # the posterior of the final weights
+        # the posterior of the final decisions
         w = self._precisions(s2, rg, in_group, r)
-        K = se_from_sq_dists(D.copy(), ell, sf2)
-        fac = factorize(K, D, w, resid, self.prior_mean, ell)
+        K = se_mixed(X, V, X, V, ell, sf2, center=center)
+        fac = factorize(K, None, w, resid, self.prior_mean, ell)
         self.X_train_, self.y_train_ = X, y
         self.posterior_false_ = r
         self.llr_ = llr
         self.weights_ = w
         self.lengthscale_, self.signal_var_ = ell, sf2
-        self.posterior_ = FrozenPosterior(
-            X, center, fac.a, fac.L, fac.sw, self.prior_mean, ell, sf2
+        self.posterior_ = MixedPosterior(
+            X, V, center, fac.a, fac.L, fac.sw, self.prior_mean, ell, sf2
         )
         self.mean_train_ = fac.m
         at = self.bounds.at_bound(ell, sf2)
@@ -322,10 +386,14 @@ class EventMixtureGPIS:
         return self
 
     def _precisions(self, s2, rg, in_group, r) -> np.ndarray:
+        """Row precisions for the GP: a group decided false (``r > 1/2``) counts with the
+        outlier variance, one decided true with its own noise. (The mean-field expectation
+        ``(1 - r) / s^2 + r / s_out^2`` lets a group that is 90 % false still pull the surface
+        with a tenth of a true contact's weight, a phantom patch the map then draws.)"""
         w = 1.0 / s2
         if r.size:
-            rr = np.where(in_group, r[np.maximum(rg, 0)], 0.0)
-            w = (1.0 - rr) / s2 + rr / self.outlier_var
+            false = in_group & (r[np.maximum(rg, 0)] > 0.5)
+            w = np.where(false, 1.0 / (_EXCLUDED * self.outlier_var), w)
         return w
 
     @staticmethod
@@ -341,7 +409,7 @@ class EventMixtureGPIS:
         cuts = np.flatnonzero(np.diff(b_sorted)) + 1
         return np.split(rows, cuts)
 
-    def _leave_burst_out(self, fac: BFactor, w, s2, rg, bursts, n_groups) -> np.ndarray:
+    def _leave_burst_out(self, fac: BFactor, w, s2, rg, bursts, n_groups, is_val) -> np.ndarray:
         """llr (false vs true) of every group from its burst's leave-out residual.
 
         A group's rows are not independent evidence: its contact samples lie a few
@@ -362,8 +430,11 @@ class EventMixtureGPIS:
             e = Cb @ a[rows]  # y_B - E[y_B | rest]
             V = Cb - np.diag(1.0 / w[rows])  # latent predictive covariance of f_B | rest
             g_rows = rg[rows]
+            val = is_val[rows]
             for g in np.unique(g_rows):
-                k = np.flatnonzero(g_rows == g)
+                k = np.flatnonzero((g_rows == g) & val)  # slopes are not label residuals
+                if k.size == 0:
+                    continue
                 eg = float(e[k].mean())
                 vg = max(float(V[np.ix_(k, k)].mean()), 0.0)
                 sg = float(s2[rows[k]].mean())

@@ -89,6 +89,9 @@ def training_policy(
         sweep_exclude_s=mapping.sweep_exclude_s,
         sweep_tolerance_m=mapping.sweep_tolerance_m,
         sweep_llr=mapping.sweep_llr,
+        tangent_slope_noise=mapping.tangent_slope_noise,
+        plane_reach_m=mapping.plane_reach_m,
+        plane_noise_per_m=mapping.plane_noise_per_m,
     )
 
 
@@ -198,7 +201,7 @@ class SurfaceModel:
             tol=ms.flag_tol,
             chunk_mb=self.surface.chunk_mb,
         )
-        return est.fit(ts.X, ts.y, ts.noise_var, ts.groups, start=start)
+        return est.fit(ts.X, ts.y, ts.noise_var, ts.groups, start=start, directions=ts.directions)
 
     # ------------------------------------------------------------------ fit
 
@@ -312,8 +315,38 @@ class SurfaceModel:
         hi = np.maximum(reg.hi, reg.lo + 2.0 * spacing)
         return Grid.from_bounds(reg.lo, hi, spacing)
 
+    def reach_m(self) -> float:
+        """How far from a trusted contact the surface may be drawn: a tangent plane's reach
+        plus 2.5 length scales (beyond, the field is the prior and its zero set is noise)."""
+        return self.mapping.plane_reach_m + 2.5 * self.lengthscale_
+
+    def anchors(self) -> np.ndarray:
+        """(k, d) contact and internal rows of the events decided true: where surface can be."""
+        ts = self.training_set_
+        g = ts.groups.row_group
+        trusted = np.zeros(len(ts), dtype=bool)
+        ok = g >= 0
+        trusted[ok] = self.fit_.posterior_false_[g[ok]] <= 0.5
+        value = np.einsum("ij,ij->i", ts.directions, ts.directions) == 0.0
+        return ts.X[trusted & value & (ts.y <= 0.0)]
+
+    def _active(self):
+        from scipy.spatial import cKDTree
+
+        pts = self.anchors()
+        if pts.shape[0] == 0:
+            return lambda q: np.zeros(len(q), dtype=bool)
+        tree, r = cKDTree(pts), self.reach_m()
+
+        def active(q: np.ndarray) -> np.ndarray:
+            d, _ = tree.query(q, distance_upper_bound=r)
+            return np.isfinite(d)
+
+        return active
+
     def field(self) -> BandField:
-        """Narrow-band mean field on :meth:`mesh_grid`."""
+        """Narrow-band mean field on :meth:`mesh_grid`, evaluated only within :meth:`reach_m`
+        of a trusted contact."""
         grid = self.mesh_grid()
         with blas_threads(self.mapping.blas_threads):
             return narrow_band_field(
@@ -321,6 +354,7 @@ class SurfaceModel:
                 grid,
                 coarse_factor=self.surface.coarse_factor,
                 band_voxels=self.surface.band_voxels,
+                active=self._active(),
             )
 
     def mesh(self, with_std: bool = True) -> SurfaceMesh:
@@ -329,6 +363,13 @@ class SurfaceModel:
         band = self.field()
         t1 = time.perf_counter()
         mesh = extract_surface(band.values, band.grid)
+        if not mesh.is_empty:  # faces of the inactive fill's edge are not the surface
+            from scipy.spatial import cKDTree
+
+            pts = self.anchors()
+            d, _ = cKDTree(pts).query(mesh.vertices)
+            keep = (d[mesh.faces] <= self.reach_m() - 2.0 * band.grid.spacing).all(axis=1)
+            mesh = _faces_subset(mesh, keep)
         frac = self.surface.max_std_fraction
         if (with_std or frac < 1.0) and not mesh.is_empty:
             with blas_threads(self.mapping.blas_threads):
@@ -340,3 +381,15 @@ class SurfaceModel:
         self.last_field_ = band
         self.timings_.update(field_s=t1 - t0, mesh_s=t2 - t1)
         return mesh
+
+
+def _faces_subset(mesh: SurfaceMesh, keep: np.ndarray) -> SurfaceMesh:
+    """The mesh with only the faces ``keep`` (unused vertices dropped)."""
+    if keep.all():
+        return mesh
+    faces = mesh.faces[keep]
+    used = np.unique(faces)
+    remap = np.full(mesh.vertices.shape[0], -1, dtype=np.int64)
+    remap[used] = np.arange(used.size)
+    std = None if mesh.std is None else mesh.std[used]
+    return SurfaceMesh(mesh.vertices[used], remap[faces], mesh.normals[used], std)

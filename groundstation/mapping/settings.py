@@ -52,6 +52,10 @@ class MappingSettings:
         the tolerance (mixture).
     flag_tol : float
         The mixture's EM stops when no event's posterior moves by more than this.
+    tangent_slope_noise : float
+        Noise (label units per metre) of each event's two tangent-plane rows: the potential's
+        derivative along the contact's tangents is 0, so a surface goes on flat around a touch
+        instead of closing into a blob (mixture; 0: no tangent rows).
     model : "robust" | "gpis"
         Student-t robust GPIS (the paper's method) or homoscedastic GPIS.
     lengthscale : float
@@ -189,6 +193,9 @@ class MappingSettings:
     sweep_exclude_s: float = 0.5
     sweep_tolerance_m: float = 0.03
     flag_tol: float = 1e-3
+    tangent_slope_noise: float = 2.0
+    plane_reach_m: float = 0.0
+    plane_noise_per_m: float = 0.5
     model: Literal["robust", "gpis"] = "robust"
     lengthscale: float = 0.25
     signal_var: float = 1.0

@@ -8,6 +8,11 @@
   (``sigma_m``: the detector's placement uncertainty in metres; ``slope``: the potential's change
   per metre, from 0 at the surface to ``inside_value`` at ``d_in`` behind it); a free row's is
   ``free_noise^2`` (a vehicle centre is 'outside' by an unknown distance).
+- **Tangent planes.** A contact says the surface passes there with normal n; where touches are
+  sparse the GP would otherwise draw a blob around each. Each event adds two rows at its contact
+  centroid: the derivative of the potential along two tangents of n is 0, with noise
+  ``tangent_slope_noise`` (label units per metre: a normal off by 20 deg on a potential rising
+  5 per metre), so the surface goes on flat for about a length scale.
 - **Groups.** The rows of one contact event form a group (contacts without an event id are
   groups of their own, with the internal point of the same time). Its prior ``P(false)`` is the
   detector's ``p_false`` (mean over its rows) where known, else ``prior_false``.
@@ -50,6 +55,9 @@ class TrainingPolicy:
     sweep_exclude_s: float = 0.5
     sweep_tolerance_m: float = 0.03
     sweep_llr: float = 4.6
+    tangent_slope_noise: float = 0.0
+    plane_reach_m: float = 0.0
+    plane_noise_per_m: float = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,11 +67,14 @@ class TrainingSet:
     Attributes
     ----------
     X : (n, d) float64
+    directions : (n, d) float64
+        Zero for value rows; a unit tangent for a contact's tangent-plane rows (the derivative
+        of the potential along it is 0: the surface goes on flat around the contact).
     y : (n,) float64
-        Potential values (0 contact, ``inside_value`` internal, +1 free).
+        Potential values (0 contact, ``inside_value`` internal, +1 free), or 0 for a tangent.
     noise_var : (n,) float64
     row_ids : (n,) int64
-        Observation id of each row.
+        Observation id of each row (-1 for tangent rows).
     groups : Groups
     event_ids : (G,) int64
         Detector event id of each group (-1 for contacts without one).
@@ -76,6 +87,7 @@ class TrainingSet:
     """
 
     X: np.ndarray
+    directions: np.ndarray
     y: np.ndarray
     noise_var: np.ndarray
     row_ids: np.ndarray
@@ -105,6 +117,7 @@ def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> Tr
     g_prior: list[list[float]] = []
     g_t: list[list[int]] = []
     g_contacts: list[list[np.ndarray]] = []
+    g_normals: list[list[np.ndarray]] = []
     free_seen: set[tuple[int, ...]] = set()
     free_pts, free_t = [], []
     for o in obs:
@@ -131,12 +144,14 @@ def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> Tr
             g_prior.append([])
             g_t.append([])
             g_contacts.append([])
+            g_normals.append([])
         g_ids[g].append(o.id)
         g_t[g].append(int(o.t_ns))
         if math.isfinite(o.p_false):
             g_prior[g].append(float(o.p_false))
         if o.label == 0:
             g_contacts[g].append(x)
+            g_normals[g].append(np.asarray(o.normal, dtype=np.float64))
         sig = o.sigma_m if math.isfinite(o.sigma_m) else 0.0
         rows_X.append(x)
         rows_y.append(0.0 if o.label == 0 else p.inside_value)
@@ -144,6 +159,36 @@ def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> Tr
         rows_id.append(o.id)
         rows_g.append(g)
     d = len(rows_X[0]) if rows_X else 3
+    dirs = [np.zeros(d)] * len(rows_X)
+    if p.tangent_slope_noise > 0 and d == 3:
+        for g in range(len(g_ids)):
+            if not g_contacts[g] or not g_normals[g]:
+                continue
+            n = np.mean(g_normals[g], axis=0)
+            if float(np.linalg.norm(n)) < 0.5:
+                continue
+            n = n / np.linalg.norm(n)
+            a = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
+            a /= np.linalg.norm(a)
+            centre = np.mean(g_contacts[g], axis=0)
+            b = np.cross(n, a)
+            for v in (a, b):
+                rows_X.append(centre)
+                rows_y.append(0.0)
+                rows_s2.append(p.tangent_slope_noise**2)
+                rows_id.append(-1)
+                rows_g.append(g)
+                dirs.append(v)
+            if p.plane_reach_m > 0:
+                rho = p.plane_reach_m
+                s2_plane = p.contact_noise**2 + (p.plane_noise_per_m * rho) ** 2
+                for v in (a, -a, b, -b):
+                    rows_X.append(centre + rho * v)
+                    rows_y.append(0.0)
+                    rows_s2.append(s2_plane)
+                    rows_id.append(-1)
+                    rows_g.append(g)
+                    dirs.append(np.zeros(d))
     X = np.asarray(rows_X, dtype=np.float64).reshape(-1, d)
     prior = np.array([float(np.mean(v)) if v else p.prior_false for v in g_prior], dtype=np.float64)
     t_span = [(min(v), max(v)) for v in g_t]
@@ -161,6 +206,7 @@ def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> Tr
     )
     return TrainingSet(
         X=X,
+        directions=np.asarray(dirs, dtype=np.float64).reshape(-1, d),
         y=np.asarray(rows_y, dtype=np.float64),
         noise_var=np.asarray(rows_s2, dtype=np.float64),
         row_ids=np.asarray(rows_id, dtype=np.int64),

@@ -164,6 +164,8 @@ def run_offline(
     *,
     progress: Progress | None = None,
     keep_meshes: int = 3,
+    map_mode: str = "live",
+    checkpoints: int = 0,
 ) -> PipelineResult:
     """Run the whole pipeline in process on ``log_path``.
 
@@ -177,7 +179,16 @@ def run_offline(
         Called about every 5 s of log time with (log s done, log s total, refits, contacts).
     keep_meshes : int
         Keep the meshes of this many last fits (for snapshots).
+    map_mode : "live" | "final"
+        ``live``: refit on the live cadence (``mapper.refit_period_s`` of data time), as a live
+        session does. ``final``: detect over the whole log, then fit once on everything (plus
+        ``checkpoints`` fits at evenly spaced data times), for when the final map is what
+        matters.
+    checkpoints : int
+        Intermediate fits of ``map_mode = "final"``.
     """
+    if map_mode not in ("live", "final"):
+        raise ValueError(f"map_mode must be live or final, got {map_mode!r}")
     cfg = config or load_config()
     t_wall = time.perf_counter()
     start_ns, duration, truth = recording_span(log_path)
@@ -187,6 +198,10 @@ def run_offline(
     observations: list[Observation] = []
     fits: list[FitResult] = []
     next_report = [0]
+    marks: list[int] = []
+    if map_mode == "final" and checkpoints > 0 and duration > 0:
+        step = duration / (checkpoints + 1)
+        marks = [start_ns + int(step * (k + 1) * 1e9) for k in range(checkpoints)]
 
     def tick(recv_ns: int) -> None:
         if progress is not None and recv_ns >= next_report[0]:
@@ -200,7 +215,11 @@ def run_offline(
         obs = observation_from_envelope(env)
         observations.append(obs)
         mapper.add([obs])
-        if mapper.due():
+        if map_mode == "live":
+            if mapper.due():
+                _append_fit(fits, mapper.refit(), keep_meshes)
+        elif marks and obs.t_ns >= marks[0] and mapper.ready():
+            marks.pop(0)
             _append_fit(fits, mapper.refit(), keep_meshes)
     if mapper.pending and mapper.ready():
         _append_fit(fits, mapper.refit(), keep_meshes)
