@@ -41,13 +41,13 @@ def test_forces_and_durations_as_configured():
     pulses = [q for q in pulses if q[1] < 119.0]
     assert len(done) >= 30 and len(pulses) == len(done)
     for g, (t0, t1, peak) in zip(done, pulses, strict=True):
-        assert 5.0 <= g.peak_force <= 40.0 and g.peak_force == pytest.approx(g.peak)
+        assert 5.0 <= g.peak_force_n <= 40.0 and g.peak_force_n == pytest.approx(g.peak)
         assert 0.05 <= g.duration <= 0.3 and g.end == pytest.approx(g.start + g.duration)
         assert t0 == pytest.approx(g.start, abs=0.0011)
         assert t1 - t0 == pytest.approx(g.duration, abs=0.0021)  # the pulse, sampled at 1 kHz
-        assert peak == pytest.approx(g.peak_force, rel=0.01)  # the half-sine's top
+        assert peak == pytest.approx(g.peak_force_n, rel=0.01)  # the half-sine's top
         assert g.cluster is None
-    forces = np.array([g.peak_force for g in done])
+    forces = np.array([g.peak_force_n for g in done])
     assert forces.min() < 12 and forces.max() > 30  # the range is covered, not one value
 
 
