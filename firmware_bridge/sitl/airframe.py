@@ -38,7 +38,7 @@ class Airframe:
     guard_radius: float = 0.125  # guard ring centreline radius around each rotor
     guard_tube: float = 0.01  # half the rim band's height (and its thickness), capsule radius
     guard_z: float = 0.0  # rim band centre above the arm plane
-    guard_segments: int = 12  # straight capsules per ring (chord sag 1 - cos(pi/12): 4 mm)
+    guard_segments: int = 16  # straight capsules per ring (chord sag r (1 - cos(pi/16)): 2.4 mm)
     body_half: Vec = (0.06, 0.04, 0.025)  # central box half sizes
     leg_length: float = 0.08  # from the body's bottom to the foot
     leg_spread: float = 0.03  # foot further out than the leg's top, along the diagonal
@@ -91,24 +91,48 @@ class Airframe:
             out.append((top, foot))
         return out
 
+    def guard_ring(self, rotor: int) -> list[Vec]:
+        """Vertices (body frame) of rotor ``rotor``'s rim polygon, the first on the arm's line
+        (so the rims reach exactly arm + radius + tube along the arms, and, with a multiple of
+        8 segments, exactly between them too)."""
+        x, y, _, _ = self.rotors()[rotor]
+        phase = math.atan2(y, x)
+        n, r = self.guard_segments, self.guard_radius
+        return [
+            (x + r * math.cos(phase + 2 * math.pi * j / n),
+             y + r * math.sin(phase + 2 * math.pi * j / n), self.guard_z)
+            for j in range(n)
+        ]  # fmt: skip
+
     def reach(self, azimuth: float) -> float:
         """Horizontal distance (m) from the centre to the body's outline along body-frame
-        ``azimuth`` (rad from x): the support function of the guard rims (or the cylinder)."""
+        ``azimuth`` (rad from x): the support function of the rim polygons (capsule chains)
+        plus the tube radius, or the cylinder's radius."""
         if self.layout == "cylinder":
             return self.cylinder_radius
         ux, uy = math.cos(azimuth), math.sin(azimuth)
-        ring = max(x * ux + y * uy for x, y, _, _ in self.rotors())
-        return ring + self.guard_radius + self.guard_tube
+        ring = max(p[0] * ux + p[1] * uy for k in range(4) for p in self.guard_ring(k))
+        return ring + self.guard_tube
 
     @property
     def reach_min(self) -> float:
-        """Smallest horizontal reach over all directions (m)."""
-        return min(self.reach(math.radians(a / 4)) for a in range(1440))
+        """Smallest horizontal reach over all directions (m, sampled every 0.25 deg)."""
+        return min(self._reaches())
 
     @property
     def reach_max(self) -> float:
         """Largest horizontal reach (m): the radius of the cylinder circumscribing the body."""
-        return max(self.reach(math.radians(a / 4)) for a in range(1440))
+        return max(self._reaches())
+
+    def _reaches(self) -> list[float]:
+        if self.layout == "cylinder":
+            return [self.cylinder_radius]
+        pts = [p for k in range(4) for p in self.guard_ring(k)]
+        out = []
+        for a in range(1440):
+            ux, uy = math.cos(math.radians(a / 4)), math.sin(math.radians(a / 4))
+            out.append(max(p[0] * ux + p[1] * uy for p in pts) + self.guard_tube)
+        return out
 
     @property
     def top(self) -> float:

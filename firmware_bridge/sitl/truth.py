@@ -7,9 +7,10 @@ not), ``ground`` for the floor (landing); gusts are events of kind ``gust`` with
 
 What a detector benchmark scores by, per contact (all at the first step in contact unless said):
 
-- ``normal_speed`` (m/s): the vehicle's speed towards the surface, -v . n (``impact_speed`` is
-  the same, clipped at 0, the original key); ``approach_speed``: |v|; ``approach_angle_deg``:
-  the angle between the flight direction and the inward normal (0 = straight in).
+- ``normal_speed`` (m/s): the vehicle's speed towards the surface, -v . n, just before the
+  contact began; ``approach_speed``: |v|; ``approach_angle_deg``: the angle between the flight
+  direction and the inward normal (0 = straight in). ``impact_speed``, the original key, is
+  -v . n (clipped at 0) after the first step in contact, so a little lower.
 - ``onset_point``: the true contact point on the structure's surface, ``onset_normal`` the
   outward normal there, ``onset_position`` the vehicle's position; ``point``/``normal``/
   ``vehicle_position`` are the same at the deepest penetration (original keys).
@@ -87,6 +88,7 @@ class ContactTracker:
     _open: ContactEvent | None = None
     _last_seen: float = 0.0
     _free: bool = True  # the open event's body has come free since its last contact step
+    _v: tuple[float, float, float] = (0.0, 0.0, 0.0)  # velocity after the previous step
 
     def update(self, t: float, body) -> None:
         """Record the contact state after the physics step that ended at time ``t`` (s).
@@ -95,6 +97,7 @@ class ContactTracker:
         """
         c = body.contact
         ev = self._open
+        v_before, self._v = self._v, (body.vx, body.vy, body.vz)
         if c is None:
             if ev is not None and not self._free:  # the first step free: the rebound
                 self._free = True
@@ -115,8 +118,11 @@ class ContactTracker:
             n = c.normal
             speed = -(body.vx * n[0] + body.vy * n[1] + body.vz * n[2])
             kind = "ground" if obj < 0 else ("touch" if speed >= self.slow_speed else "slow_touch")
-            v = math.sqrt(body.vx**2 + body.vy**2 + body.vz**2)
-            cos = speed / v if v > 1e-9 else 1.0
+            # Approach: the velocity just before the step in which the contact began (a soft
+            # contact's damping already acts within its first step).
+            vn = -(v_before[0] * n[0] + v_before[1] * n[1] + v_before[2] * n[2])
+            v = math.sqrt(v_before[0] ** 2 + v_before[1] ** 2 + v_before[2] ** 2)
+            cos = vn / v if v > 1e-9 else 1.0
             ev = ContactEvent(
                 kind,
                 t,
@@ -127,7 +133,7 @@ class ContactTracker:
                 body.position,
                 max(0.0, speed),
                 0.0,
-                normal_speed=speed,
+                normal_speed=vn,
                 approach_speed=v,
                 approach_angle_deg=math.degrees(math.acos(max(-1.0, min(1.0, cos)))),
                 onset_point=c.point,

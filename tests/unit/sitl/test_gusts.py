@@ -11,7 +11,7 @@ from firmware_bridge.sitl.gusts import GustParams, GustSchedule
 from firmware_bridge.sitl.physics import GRAVITY
 from firmware_bridge.sitl.pilots import make_pilot
 from firmware_bridge.sitl.scene import load_scene
-from firmware_bridge.sitl.vehicle import Vehicle, VehicleSettings
+from firmware_bridge.sitl.vehicle import Vehicle, vehicle_settings
 
 REAL_WIND = dict(force=(5.0, 40.0), duration=(0.05, 0.3), rate_per_min=30.0)
 
@@ -58,13 +58,15 @@ def test_force_range_is_converted_with_the_mass():
     assert GustParams.from_forces(1.0) == GustParams()
 
 
-def test_clusters_of_gusts_within_seconds_at_one_spot():
+@pytest.mark.parametrize("physics", ["simple", "mujoco"])
+def test_clusters_of_gusts_within_seconds_at_one_spot(physics):
     scene = load_scene("paper")
     gusts = GustParams.from_forces(
-        1.0, force=(5.0, 15.0), duration=(0.05, 0.2), rate_per_min=6.0, cluster_probability=0.6
+        1.0, force=(5.0, 15.0), duration=(0.05, 0.2), rate_per_min=12.0, cluster_probability=0.6
     )
-    v = Vehicle(scene, make_pilot("hover", scene, 0.2, 0.1), 11, VehicleSettings(gusts=gusts))
-    while v.t < 90.0:
+    vs = vehicle_settings(physics, gusts=gusts)
+    v = Vehicle(scene, make_pilot("hover", scene, 0.2, 0.1), 11, vs)
+    while v.t < 40.0:
         v.step()
     history = [g for g in v.gusts.history if g.end < v.t - 1.0]
     ids = {g.cluster for g in history if g.cluster is not None}

@@ -10,40 +10,25 @@ import numpy as np
 import pytest
 
 from firmware_bridge.sitl.gusts import GustParams
-from firmware_bridge.sitl.pilots import Planner, ScriptPilot
+from firmware_bridge.sitl.measure import touch_trial
 from firmware_bridge.sitl.runner import Simulation
 from firmware_bridge.sitl.scene import load_scene
-from firmware_bridge.sitl.vehicle import planning_cylinder, vehicle_settings
-from tests.unit.sitl.flight import fly
+from firmware_bridge.sitl.vehicle import vehicle_settings
 
-ENGINES = ["simple"]
+ENGINES = ["simple", "mujoco"]
 RESTITUTION = {"simple": 0.5, "mujoco": 0.4}
 
 
 def aimed_touch(physics: str, speed: float, angle_deg: float = 0.0, azimuth: float = 0.0):
-    """Touch the wall's -x face at (4.0, 2.0, 1.0) with normal speed ``speed`` (m/s), ``angle``
-    off the normal (``azimuth`` 0: sideways, pi/2: upwards); returns (flight, event, target)."""
-    scene = load_scene("wall")  # box x 4.0..4.2, y 1..3, z 0..1.5
-    r, h = planning_cylinder(vehicle_settings(physics))
-    planner = Planner(scene, r, h)
-    tgt = planner.touch_target(0, "xmin", (4.0, 2.0, 1.0), (-1.0, 0.0, 0.0))
-    assert tgt is not None
-    run_ups = (0.8, 0.7, 0.6)
-    tgt = planner.angled(tgt, math.radians(angle_deg), azimuth, run_ups)
-    assert tgt is not None
-    acts = [("goto", tgt.standoff, 1.0), ("hover", 0.5),
-            ("touch", tgt, speed / math.cos(math.radians(angle_deg))),
-            ("goto", tgt.standoff, 1.0), ("hover", 0.5)]  # fmt: skip
-    f = fly(scene, ScriptPilot(scene, acts), 20.0, until_done=True, physics=physics)
-    events = [e for e in f.vehicle.tracker.events if e.object_index == 0]
-    assert len(events) == 1, events
-    return f, events[0], tgt
+    """(vehicle, event) of one touch of the wall's -x face (see measure.touch_trial)."""
+    trial, ev = touch_trial(physics, speed, angle_deg, azimuth)
+    return trial.vehicle, ev
 
 
 @pytest.mark.parametrize("physics", ENGINES)
 @pytest.mark.parametrize("speed", [0.4, 1.0])
 def test_touch_at_a_known_speed_is_in_the_truth(physics, speed):
-    f, ev, tgt = aimed_touch(physics, speed)
+    v, ev = aimed_touch(physics, speed)
     assert ev.kind == "touch"
     assert ev.normal_speed == pytest.approx(speed, rel=0.1)
     assert ev.approach_angle_deg < 6.0
@@ -51,10 +36,10 @@ def test_touch_at_a_known_speed_is_in_the_truth(physics, speed):
     # The true contact point is on the wall's face, in front of the vehicle.
     p = np.array(ev.onset_point)
     assert p[0] == pytest.approx(4.0, abs=1e-3) and abs(p[1] - 2.0) < 0.35
-    assert abs(f.vehicle.scene.signed_distance(p[None])[0]) < 2e-3
+    assert abs(v.scene.signed_distance(p[None])[0]) < 2e-3
     # Where on the body: the front (body x points at the wall, yaw 0).
     body = np.array(ev.body_point)
-    a = f.vehicle.body.airframe
+    a = v.body.airframe
     assert a.reach_min - 0.02 <= body[0] <= a.reach_max + 1e-6 and abs(body[2]) < 0.05
     # It bounces back: restitution as the contact model says.
     assert ev.rebound_speed > 0
@@ -63,7 +48,7 @@ def test_touch_at_a_known_speed_is_in_the_truth(physics, speed):
 
 @pytest.mark.parametrize("physics", ENGINES)
 def test_a_45_degree_approach(physics):
-    f, ev, tgt = aimed_touch(physics, 0.5, 45.0)
+    _, ev = aimed_touch(physics, 0.5, 45.0)
     assert ev.approach_angle_deg == pytest.approx(45.0, abs=4.0)
     assert ev.normal_speed == pytest.approx(0.5, rel=0.12)
     assert ev.approach_speed == pytest.approx(0.5 * math.sqrt(2), rel=0.12)
