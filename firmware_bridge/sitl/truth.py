@@ -18,6 +18,8 @@ What a detector benchmark scores by, per contact (all at the first step in conta
   ``body_point``: where on the body it touched, body frame FLU, metres from the body origin.
 - ``rebound_speed`` (m/s, v . n at the step the body comes free; negative if it did not move
   away) and ``restitution`` = rebound / normal speed.
+- ``gust``: the index of a gust that blew up to 0.5 s before the onset (it may have pushed the
+  vehicle into the structure), else None.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from firmware_bridge.sitl.gusts import Gust
 from firmware_bridge.sitl.physics import GRAVITY
 
 Vec = tuple[float, float, float]
+GUST_AFTERMATH = 0.5  # s after a gust in which a contact is attributed to it
 
 
 @dataclass
@@ -59,6 +62,7 @@ class ContactEvent:
     restitution: float | None = None
     peak_force_n: float | None = None  # gusts: peak force, N
     cluster: int | None = None  # gusts: cluster id (None: isolated)
+    gust: int | None = None  # contacts: index of a gust active up to 0.5 s before the onset
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -154,8 +158,17 @@ class ContactTracker:
             ev.vehicle_position = body.position
 
     def all_events(self, gusts: list[Gust]) -> list[ContactEvent]:
-        """Contact events and gusts, in start-time order."""
+        """Contact events and gusts, in start-time order.
+
+        A contact that begins while a gust blows or within ``GUST_AFTERMATH`` seconds after it
+        carries that gust's index in ``gust`` (a strong gust can push the vehicle into a
+        structure: such a touch is real, but not one the pilot made).
+        """
         out = list(self.events)
+        for e in out:
+            for k, g in enumerate(gusts):
+                if g.start <= e.start <= g.start + g.duration + GUST_AFTERMATH:
+                    e.gust = k
         for g in gusts:
             out.append(
                 ContactEvent(

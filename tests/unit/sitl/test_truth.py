@@ -79,3 +79,17 @@ def test_truth_document_has_gusts_manoeuvres_engine_and_airframe():
     assert {"accelerate", "brake"} <= kinds
     for m in doc["maneuvers"]:
         assert m["end"] > m["start"] and m["peak_accel_filtered_g"] > 0.3
+
+
+def test_contacts_after_a_gust_name_it():
+    from firmware_bridge.sitl.gusts import Gust
+    from firmware_bridge.sitl.truth import ContactEvent, ContactTracker
+
+    tracker = ContactTracker()
+    pilot_touch = ContactEvent("touch", 3.0, 3.02, 0, (1, 0, 0), (-1, 0, 0), (0.8, 0, 0), 1, 9)
+    pushed = ContactEvent("touch", 10.4, 10.42, 0, (1, 0, 0), (-1, 0, 0), (0.8, 0, 0), 3, 30)
+    tracker.events = [pilot_touch, pushed]
+    gusts = [Gust(1.0, 0.1, 10.0, (1, 0, 0)), Gust(10.0, 0.2, 40.0, (1, 0, 0))]
+    events = tracker.all_events(gusts)
+    assert pilot_touch.gust is None and pushed.gust == 1
+    assert [e.kind for e in events] == ["gust", "touch", "gust", "touch"]
