@@ -39,7 +39,7 @@ class VehicleGeom:
 
 
 def _f(*values: float) -> str:
-    return " ".join(f"{v:.9g}" for v in values)
+    return " ".join(repr(float(v)) for v in values)
 
 
 def _attrs(**kv: object) -> str:
@@ -53,21 +53,21 @@ def vehicle_geoms(a: Airframe) -> list[tuple[VehicleGeom, str]]:
     def add(name: str, part: str, **kv: object) -> None:
         out.append((VehicleGeom(name, part), f"<geom {_attrs(name=name, **kv)}/>"))
 
-    add("body", "body", type="box", size=_f(*a.body_half), mass=f"{a.body_mass:.9g}")
+    add("body", "body", type="box", size=_f(*a.body_half), mass=_f(a.body_mass))
     n = a.guard_segments
     for k, (x, y, z, _spin) in enumerate(a.rotors()):
         add(f"arm{k}", "arm", type="capsule", fromto=_f(0, 0, 0, x, y, 0), size="0.008",
-            mass=f"{a.arm_mass:.9g}")  # fmt: skip
+            mass=_f(a.arm_mass))  # fmt: skip
         add(f"motor{k}", "motor", type="cylinder", pos=_f(x, y, z / 2), size=_f(0.014, z / 2),
-            mass=f"{a.motor_mass:.9g}")  # fmt: skip
+            mass=_f(a.motor_mass))  # fmt: skip
         ring = a.guard_ring(k)
         for j in range(n):
             p0, p1 = ring[j], ring[(j + 1) % n]
             add(f"guard{k}_{j}", "guard", type="capsule", fromto=_f(*p0, *p1),
-                size=f"{a.guard_tube:.9g}", mass=f"{a.guard_mass / n:.9g}")  # fmt: skip
+                size=_f(a.guard_tube), mass=_f(a.guard_mass / n))  # fmt: skip
     for k, (top, foot) in enumerate(a.legs()):
         add(f"leg{k}", "leg", type="capsule", fromto=_f(*top, *foot),
-            size=f"{a.leg_radius:.9g}", mass=f"{a.leg_mass:.9g}")  # fmt: skip
+            size=_f(a.leg_radius), mass=_f(a.leg_mass))  # fmt: skip
     return out
 
 

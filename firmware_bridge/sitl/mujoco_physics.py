@@ -67,7 +67,10 @@ class MujocoBody:
         self._body = m.body("quad").id
         self._site = m.site("imu").id
         self._accel = m.sensor("accel").adr[0]
-        self.mass = float(m.body_subtreemass[self._body])
+        model_mass = float(m.body_subtreemass[self._body])
+        if abs(model_mass - airframe.mass) > 1e-9:  # pragma: no cover - the builder's invariant
+            raise ValueError(f"model mass {model_mass} kg != airframe mass {airframe.mass} kg")
+        self.mass = airframe.mass
         self.drag = quad.drag
         self.rate_tau = quad.rate_tau
         self.rest_height = airframe.bottom
