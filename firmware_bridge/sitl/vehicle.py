@@ -41,9 +41,6 @@ class VehicleSettings:
 
     physics_rate: int = 800  # Hz
     quad: QuadParams = field(default_factory=QuadParams)
-    physics: str = "simple"
-    airframe: Airframe | None = None
-    mujoco: MujocoParams = field(default_factory=MujocoParams)
     imu: ImuParams = field(default_factory=ImuParams)
     gusts: GustParams = field(default_factory=GustParams)
     gains: ControlGains = field(default_factory=ControlGains)
@@ -53,6 +50,9 @@ class VehicleSettings:
     max_speed: float = 2.0  # m/s at full stick
     max_climb: float = 1.0  # m/s at full stick
     max_yaw_rate: float = math.radians(90.0)  # rad/s at full stick
+    physics: str = "simple"
+    airframe: Airframe | None = None
+    mujoco: MujocoParams = field(default_factory=MujocoParams)
 
 
 def vehicle_settings(physics: str = "simple", **kwargs: object) -> VehicleSettings:
