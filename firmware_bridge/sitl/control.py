@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from firmware_bridge.sitl.physics import GRAVITY, QuadBody
+from firmware_bridge.sitl.physics import GRAVITY
 
 
 @dataclass(frozen=True)
@@ -52,8 +52,9 @@ class Controller:
     def __init__(self, gains: ControlGains | None = None):
         self.g = gains or ControlGains()
 
-    def update(self, body: QuadBody, sp: Setpoint) -> tuple[float, tuple[float, float, float]]:
-        """One control step; see the module docstring for the cascade."""
+    def update(self, body, sp: Setpoint) -> tuple[float, tuple[float, float, float]]:
+        """One control step for ``body`` (any :class:`~firmware_bridge.sitl.engine.Physics`);
+        see the module docstring for the cascade."""
         g = self.g
         if not sp.armed:
             return 0.0, (0.0, 0.0, 0.0)
@@ -74,11 +75,11 @@ class Controller:
         h = math.hypot(ax, ay)
         if h > a_max:
             ax, ay = ax * a_max / h, ay * a_max / h
-        m = body.p.mass
+        m, drag = body.mass, body.drag
         # Thrust vector (world), compensating linear drag; tilt-limited.
-        fx = m * ax + body.p.drag * vel[0]
-        fy = m * ay + body.p.drag * vel[1]
-        fz = max(0.2 * m * GRAVITY, m * (az + GRAVITY) + body.p.drag * vel[2])
+        fx = m * ax + drag * vel[0]
+        fy = m * ay + drag * vel[1]
+        fz = max(0.2 * m * GRAVITY, m * (az + GRAVITY) + drag * vel[2])
         h = math.hypot(fx, fy)
         lim = fz * math.tan(g.max_tilt if sp.max_tilt is None else sp.max_tilt)
         if h > lim:

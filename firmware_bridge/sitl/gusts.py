@@ -67,7 +67,7 @@ class GustParams:
 class Gust:
     """One gust: start time (s), duration (s), peak specific force (m/s^2), unit direction.
 
-    ``peak_force`` is the peak force in newtons (``peak`` times the vehicle mass), ``end`` the
+    ``peak_force_n`` is the peak force in newtons (``peak`` times the vehicle mass), ``end`` the
     end time (s), ``cluster`` the id of the cluster it belongs to (None for an isolated gust).
     """
 
@@ -77,7 +77,7 @@ class Gust:
     direction: tuple[float, float, float]
     position: tuple[float, float, float] | None = None  # where the vehicle was when it began
     end: float = math.nan
-    peak_force: float = math.nan  # N
+    peak_force_n: float = math.nan  # N
     cluster: int | None = None
 
     def accel(self, t: float) -> float:
@@ -131,7 +131,7 @@ class GustSchedule:
             position=position,
         )
         g.end = g.start + g.duration
-        g.peak_force = g.peak * self.mass
+        g.peak_force_n = g.peak * self.mass
         if in_cluster:
             self._cluster_left -= 1
             g.cluster = self.clusters - 1

@@ -253,7 +253,7 @@ def plan_dashes(
     rng: np.random.Generator,
     legs: int = 8,
     speed: tuple[float, float] = (3.0, 5.0),
-    clearance: float = 0.45,
+    clearance: float = 0.3,
 ) -> list[Dash]:
     """``legs`` fast legs (about half with a corner) in clear space, drawn from ``rng``.
 

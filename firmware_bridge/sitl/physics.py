@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from firmware_bridge.sitl.airframe import cylinder_airframe
 from firmware_bridge.sitl.scene import Scene
 
 GRAVITY = 9.80665  # m/s^2
@@ -47,12 +48,18 @@ class QuadParams:
 
 @dataclass
 class Contact:
-    """Overlap of the drone's cylinder with one structure at one physics step."""
+    """Overlap of the drone's body with one structure at one physics step.
+
+    ``part`` names the body part that touches (``cylinder`` in this engine; ``guard``, ``arm``,
+    ``body`` or ``leg`` with MuJoCo), ``geom`` the exact piece (e.g. ``guard2_7``).
+    """
 
     object_index: int  # -1 for the floor
     depth: float  # m, > 0
     normal: tuple[float, float, float]  # outward from the structure, unit
     point: tuple[float, float, float]  # closest surface point of the structure, m
+    part: str = "cylinder"
+    geom: str = "cylinder"
 
 
 def contact_penetration(
@@ -89,7 +96,8 @@ def contact_penetration(
 
 
 class QuadBody:
-    """State and one integration step of the rigid body. All attributes are plain floats.
+    """State and one integration step of the rigid body (the ``simple`` engine, implementing
+    :class:`~firmware_bridge.sitl.engine.Physics`). All attributes are plain floats.
 
     Parameters
     ----------
@@ -98,8 +106,13 @@ class QuadBody:
     yaw : rad, heading of body x from world x, counter-clockwise.
     """
 
+    name = "simple"
+
     def __init__(self, params: QuadParams, position: tuple[float, float, float], yaw: float = 0.0):
         self.p = params
+        self.airframe = cylinder_airframe(params.radius, params.height, params.mass)
+        self.mass, self.drag = params.mass, params.drag
+        self.rest_height = params.height / 2
         self.x, self.y, self.z = position
         self.vx = self.vy = self.vz = 0.0
         self.qw, self.qx, self.qy, self.qz = math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)

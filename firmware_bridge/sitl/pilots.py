@@ -49,9 +49,18 @@ class ScriptPilot:
     ``maneuvers`` records the dashes' accelerate / turn / brake intervals.
     """
 
-    def __init__(self, scene: Scene, actions: list[tuple], yaw: float = 0.0):
+    def __init__(
+        self,
+        scene: Scene,
+        actions: list[tuple],
+        yaw: float = 0.0,
+        planner: Planner | None = None,
+    ):
         self.scene = scene
-        self.actions = actions
+        self.actions = list(actions)
+        self.planner = planner  # set: re-route a goto when pushed off its line (gusts)
+        self._check = 0.0
+        self._away: Vec = (0.0, 0.0, 1.0)  # backoff direction after a touch
         self.yaw = yaw
         self.i = 0
         self.phase = "start"
@@ -69,6 +78,29 @@ class ScriptPilot:
         if self.i >= len(self.actions):
             self.done = True
 
+    def _reroute(self, pos: Vec, target: Vec, speed: float) -> bool:
+        """If a gust pushed the vehicle > 0.25 m off the straight line of the current goto and
+        the way on to ``target`` is blocked, replace the goto by a planned path."""
+        a = self.hold
+        ab = (target[0] - a[0], target[1] - a[1], target[2] - a[2])
+        ap = (pos[0] - a[0], pos[1] - a[1], pos[2] - a[2])
+        L2 = ab[0] ** 2 + ab[1] ** 2 + ab[2] ** 2
+        u = (
+            0.0
+            if L2 == 0
+            else max(0.0, min(1.0, (ap[0] * ab[0] + ap[1] * ab[1] + ap[2] * ab[2]) / L2))
+        )
+        off = math.dist(pos, (a[0] + u * ab[0], a[1] + u * ab[1], a[2] + u * ab[2]))
+        planner = self.planner
+        if off < 0.25 or planner is None or planner.segment_free(pos, target, margin=0.05):
+            return False
+        path = planner.path(pos, target)
+        if not path:
+            return False
+        self.actions[self.i : self.i + 1] = [("goto", w, speed) for w in path]
+        self.hold = pos  # the new line starts here
+        return True
+
     def setpoint(self, t: float, body) -> Setpoint:
         """Setpoint for time ``t`` (s) given the body's true state."""
         if self.done:
@@ -84,6 +116,10 @@ class ScriptPilot:
             return Setpoint(position=self.hold, yaw=self.yaw)
         if kind == "goto":
             target, speed = act[1], act[2]
+            if self.planner is not None and t >= self._check:
+                self._check = t + 0.1
+                if self._reroute(pos, target, speed):
+                    target, self.t0 = self.actions[self.i][1], t
             arrived = _dist(pos, target) < 0.08 and math.hypot(*vel) < 0.15
             if arrived or t - self.t0 > _dist(self.hold, target) / speed + 8.0:
                 self._next(t, body)
@@ -99,30 +135,49 @@ class ScriptPilot:
             return Setpoint(position=self.hold, yaw=self.yaw)
         # touch: fly along -n (or the target's direction) at speed until contact, then back off.
         tgt: TouchTarget = act[1]
-        speed = act[2]
+        speed = act[2]  # a 4th element marks a retried touch
         n = tgt.normal
         if self.phase == "run":
             c = body.contact
             run_up = 0.6 if tgt.direction is None else _dist(tgt.standoff, tgt.centre)
+            self._away = n
             if c is not None and c.object_index == tgt.face[0]:
                 self.touched.append(tgt.face)
                 self.phase, self.t0 = "backoff", t
             elif t - self.t0 > run_up / speed + 3.0:
                 self.phase, self.t0 = "backoff", t
+            elif self.planner is not None and c is not None and c.object_index >= 0:
+                self.phase, self.t0, self._away = "backoff", t, c.normal  # hit something else
             e = (tgt.centre[0] - pos[0], tgt.centre[1] - pos[1], tgt.centre[2] - pos[2])
             if tgt.direction is not None:  # along d through C: v = d s + k (e - (e.d) d)
                 d = tgt.direction
                 ed = e[0] * d[0] + e[1] * d[1] + e[2] * d[2]
-                v = tuple(d[i] * speed + 2.0 * (e[i] - ed * d[i]) for i in range(3))
+                off = tuple(e[i] - ed * d[i] for i in range(3))
+                if self.phase == "run" and math.hypot(*off) > 0.25 and self._retry(act, pos):
+                    return Setpoint(position=pos, yaw=self.yaw)  # pushed off the line: re-fly
+                v = tuple(d[i] * speed + 2.0 * off[i] for i in range(3))
                 return Setpoint(velocity=v, yaw=self.yaw, max_speed=max(speed, 1.5))  # type: ignore
             en = e[0] * n[0] + e[1] * n[1] + e[2] * n[2]
             k = 2.0  # hold the line through C perpendicular to n
             v = tuple(-n[i] * speed + k * (e[i] - en * n[i]) for i in range(3))
             return Setpoint(velocity=v, yaw=self.yaw, max_speed=max(speed, 1.5))  # type: ignore
         if t - self.t0 < 0.4:
+            n = self._away
             return Setpoint(velocity=(0.5 * n[0], 0.5 * n[1], 0.5 * n[2]), yaw=self.yaw)
         self._next(t, body)
         return Setpoint(position=tgt.standoff, yaw=self.yaw)
+
+    def _retry(self, act: tuple, pos: Vec) -> bool:
+        """A gust pushed the vehicle off a touch's line: fly back to the standoff on a planned
+        path and touch again (once); False for pilots without a planner or a second time."""
+        if self.planner is None or len(act) > 3:
+            return False
+        tgt = act[1]
+        path = self.planner.path(pos, tgt.standoff) or [tgt.standoff]
+        again = [("goto", w, 1.0) for w in path] + [("hover", 0.3), (*act, "retry")]
+        self.actions[self.i : self.i + 1] = again
+        self.phase, self.hold = "start", pos
+        return True
 
 
 def _touch_actions(
@@ -202,7 +257,7 @@ def make_pilot(name: str, scene: Scene, radius: float, height: float, seed: int 
         acts += more
         acts += [("goto", w, 1.2) for w in planner.path(here, scene.start) or [scene.start]]
         acts.append(("hover", 1.0))
-        return ScriptPilot(scene, acts)
+        return ScriptPilot(scene, acts, planner=planner)
     targets = plan_survey(scene, radius, height)
     if not targets:
         raise PilotError(
@@ -226,4 +281,5 @@ def make_pilot(name: str, scene: Scene, radius: float, height: float, seed: int 
         here = targets[0].standoff
     acts += [("goto", w, 1.0) for w in planner.path(here, scene.start) or [scene.start]]
     acts.append(("hover", 1.0))
-    return ScriptPilot(scene, acts)
+    # The new pilots re-route after gusts; the old ones fly as they always did (same bytes).
+    return ScriptPilot(scene, acts, planner=planner if name == "varied" else None)

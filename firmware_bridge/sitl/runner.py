@@ -37,7 +37,7 @@ from firmware_bridge.sitl.imu_model import quat_mul
 from firmware_bridge.sitl.pilots import make_pilot
 from firmware_bridge.sitl.scene import Scene
 from firmware_bridge.sitl.truth import truth_document
-from firmware_bridge.sitl.vehicle import LANDED, Vehicle, VehicleSettings
+from firmware_bridge.sitl.vehicle import LANDED, Vehicle, VehicleSettings, planning_cylinder
 
 HIGHRES_IMU_ID, ATTITUDE_QUATERNION_ID, HEARTBEAT_ID = 105, 31, 0
 DEFAULT_INTERVALS_NS = {
@@ -95,7 +95,7 @@ class Simulation:
     Parameters
     ----------
     scene : Scene
-    pilot : "manual" or "script:NAME" (hover, survey, touch, slow_touch)
+    pilot : "manual" or "script:NAME" (:data:`~firmware_bridge.sitl.pilots.PILOTS`)
     seed : int
     duration : s of simulated time, or None for no end (``outputs`` then never stops)
     """
@@ -115,7 +115,8 @@ class Simulation:
         script = None
         if pilot != "manual":
             name = pilot.split(":", 1)[1] if pilot.startswith("script:") else pilot
-            script = make_pilot(name, scene, vs.quad.radius, vs.quad.height, seed=seed)
+            radius, height = planning_cylinder(vs)
+            script = make_pilot(name, scene, radius, height, seed=seed)
         self.vehicle = Vehicle(scene, script, seed, vs)
         self.mocap = mocap or MocapSettings()
         self.mocap_rng = np.random.default_rng([seed, 1])
@@ -234,28 +235,52 @@ class Simulation:
     def truth(self) -> dict:
         """The truth sidecar document for everything simulated so far."""
         v = self.vehicle
-        q = v.settings.quad
+        s = v.settings
+        q = s.quad
+        b = v.body
         gusts = v.gusts.history
-        return truth_document(
-            scene=self.scene.to_dict(),
-            vehicle={
+        g = s.gusts
+        if b.name == "simple":
+            vehicle = {
                 "radius": q.radius,
                 "height": q.height,
                 "mass": q.mass,
                 "contact_stiffness": q.contact_stiffness,
                 "contact_restitution": q.contact_restitution,
-            },
+            }
+            physics = {"engine": "simple", "rate": s.physics_rate}
+        else:
+            vehicle = {
+                "radius": b.airframe.reach_max,  # the cylinder circumscribing the body
+                "height": b.airframe.planning_height,
+                "mass": b.mass,
+                "contact_stiffness": None,
+                "contact_restitution": s.mujoco.nominal_restitution,
+            }
+            physics = {"engine": b.name, "rate": s.physics_rate, **b.describe()}
+        log = getattr(v.pilot, "maneuvers", None)
+        return truth_document(
+            scene=self.scene.to_dict(),
+            vehicle=vehicle,
             seed=self.seed,
             events=v.tracker.all_events(gusts),
             gusts=gusts,
             settings={
                 "pilot": self.pilot_name,
-                "physics_rate": v.settings.physics_rate,
-                "gust_rate_per_min": v.settings.gusts.rate_per_min,
+                "physics_rate": s.physics_rate,
+                "gust_rate_per_min": g.rate_per_min,
                 "mocap_up": self.mocap.up,
                 "mocap_drop_probability": self.mocap.drop_probability,
+                "physics": b.name,
+                "gust_force_n": [g.peak_min * b.mass, g.peak_max * b.mass],
+                "gust_duration_s": [g.duration_min, g.duration_max],
+                "gust_cluster_probability": g.cluster_probability,
+                "gust_cluster_size": list(g.cluster_size),
             },
             duration=v.t,
+            physics=physics,
+            airframe=b.airframe.to_dict(),
+            maneuvers=[m.to_dict() for m in log.records] if log is not None else [],
         )
 
 

@@ -17,10 +17,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from firmware_bridge.sitl.airframe import Airframe
 from firmware_bridge.sitl.control import ControlGains, Controller, Setpoint
+from firmware_bridge.sitl.engine import MujocoParams, Physics, make_physics
 from firmware_bridge.sitl.gusts import GustParams, GustSchedule
 from firmware_bridge.sitl.imu_model import ImuModel, ImuParams, quat_enu_flu_to_ned_frd
-from firmware_bridge.sitl.physics import GRAVITY, QuadBody, QuadParams
+from firmware_bridge.sitl.physics import GRAVITY, QuadParams
 from firmware_bridge.sitl.scene import Scene
 from firmware_bridge.sitl.truth import ContactTracker
 
@@ -29,7 +31,13 @@ MANUAL, HOLD, LAND, LANDED = "MANUAL", "HOLD", "LAND", "LANDED"
 
 @dataclass(frozen=True)
 class VehicleSettings:
-    """Everything that shapes the simulated vehicle (SI units)."""
+    """Everything that shapes the simulated vehicle (SI units).
+
+    ``physics`` picks the engine (``simple`` | ``mujoco``, :mod:`.engine`); ``quad`` holds the
+    simple engine's body and the drag/lag constants both share; ``airframe`` the MuJoCo body
+    (None: :class:`~firmware_bridge.sitl.airframe.Airframe`'s defaults). Use
+    :func:`vehicle_settings` for the engine's own physics rate (800 Hz simple, 1 kHz MuJoCo).
+    """
 
     physics_rate: int = 800  # Hz
     quad: QuadParams = field(default_factory=QuadParams)
@@ -42,6 +50,23 @@ class VehicleSettings:
     max_speed: float = 2.0  # m/s at full stick
     max_climb: float = 1.0  # m/s at full stick
     max_yaw_rate: float = math.radians(90.0)  # rad/s at full stick
+    physics: str = "simple"
+    airframe: Airframe | None = None
+    mujoco: MujocoParams = field(default_factory=MujocoParams)
+
+
+def vehicle_settings(physics: str = "simple", **kwargs: object) -> VehicleSettings:
+    """:class:`VehicleSettings` for ``physics`` at that engine's rate unless one is given."""
+    kwargs.setdefault("physics_rate", 1000 if physics == "mujoco" else 800)
+    return VehicleSettings(physics=physics, **kwargs)  # type: ignore[arg-type]
+
+
+def planning_cylinder(settings: VehicleSettings) -> tuple[float, float]:
+    """Radius and height (m) of the origin-centred cylinder that contains the body."""
+    if settings.physics == "simple":
+        return settings.quad.radius, settings.quad.height
+    a = settings.airframe or Airframe()
+    return a.reach_max, a.planning_height
 
 
 class ManualFlight:
@@ -60,7 +85,7 @@ class ManualFlight:
         self.transitions: list[tuple[float, str]] = [(0.0, HOLD)]
         self.done = False
 
-    def _set(self, t: float, mode: str, body: QuadBody) -> None:
+    def _set(self, t: float, mode: str, body: Physics) -> None:
         if mode != self.mode:
             self.mode, self.mode_since = mode, t
             # Hold where the vehicle comes to rest when braking (~0.3 s at the current speed).
@@ -72,7 +97,7 @@ class ManualFlight:
         self.last_input = t
         self.sticks = (x, y, z, r)
 
-    def setpoint(self, t: float, body: QuadBody, dt: float) -> Setpoint:
+    def setpoint(self, t: float, body: Physics, dt: float) -> Setpoint:
         """Failsafe transitions, then the setpoint of the current mode."""
         s = self.s
         fresh = self.last_input is not None and t - self.last_input <= s.stale_after
@@ -86,7 +111,7 @@ class ManualFlight:
             if t - self.mode_since >= s.land_after:
                 self._set(t, LAND, body)
         elif self.mode == LAND:
-            on_floor = body.z <= self.floor + body.p.height / 2 + 0.02 and abs(body.vz) < 0.1
+            on_floor = body.z <= self.floor + body.rest_height + 0.02 and abs(body.vz) < 0.1
             if on_floor and t - self.mode_since > 0.5:
                 self._set(t, LANDED, body)
         if self.mode == HOLD:
@@ -140,16 +165,15 @@ class Vehicle:
         self.settings = s = settings or VehicleSettings()
         self.scene = scene
         self.rng = np.random.default_rng(seed)
-        self.body = QuadBody(s.quad, scene.start)
+        self.body: Physics = make_physics(
+            s.physics, scene, s.quad, s.airframe, s.mujoco, s.physics_rate
+        )
         self.controller = Controller(s.gains)
         self.manual = ManualFlight(s, scene.start, scene.region_min[2]) if pilot is None else None
         self.pilot = pilot
-        self.gusts = GustSchedule(
-            s.gusts, np.random.default_rng(self.rng.integers(2**63)), s.quad.mass
-        )
-        self.imu = ImuModel(
-            s.imu, np.random.default_rng(self.rng.integers(2**63)), s.quad.mass * GRAVITY
-        )
+        mass = self.body.mass
+        self.gusts = GustSchedule(s.gusts, np.random.default_rng(self.rng.integers(2**63)), mass)
+        self.imu = ImuModel(s.imu, np.random.default_rng(self.rng.integers(2**63)), mass * GRAVITY)
         self.tracker = ContactTracker()
         self.steps = 0
         self.dt = 1.0 / s.physics_rate

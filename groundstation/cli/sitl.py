@@ -5,6 +5,13 @@ groundstation sitl [--scene NAME|FILE] [--link pty|udp://HOST:PORT] [--mocap udp
                    [--truth FILE] [--record LOG.mcap] [--log-commands FILE]
                    [--gust-rate PER_MIN] [--gust-force MIN:MAX] [--gust-duration MIN:MAX]
                    [--gust-cluster P] [--gust-cluster-size A:B]
+                   [--physics simple|mujoco] [--friction MU]
+
+Physics: ``simple`` (default; the home-made rigid body, the drone a 0.2 m x 0.1 m cylinder,
+spring-damper contacts with restitution 0.5) or ``mujoco`` (MuJoCo with the 1 kg guarded X quad's
+real geometry, rotors with lag and limits, soft contacts with restitution ~0.4 and friction
+``--friction`` on the scene's geometry, 1 kHz); same controller, pilots, gusts, IMU model and
+wire outputs.
 
 Gusts: Poisson arrivals at ``--gust-rate``; each a half-sine force pulse of peak ``--gust-force``
 newtons (default 2.5-4 G on the 1 kg vehicle) lasting ``--gust-duration`` seconds (default
@@ -36,12 +43,14 @@ from pathlib import Path
 from firmware_bridge.errors import BridgeError
 from firmware_bridge.mavlink import MavlinkCodec
 from firmware_bridge.mavlink.messages import ManualControl
+from firmware_bridge.sitl.airframe import Airframe
+from firmware_bridge.sitl.engine import ENGINES, MujocoParams
 from firmware_bridge.sitl.gusts import GustParams
 from firmware_bridge.sitl.pilots import PILOTS
 from firmware_bridge.sitl.runner import MocapSettings, Simulation, run_paced
 from firmware_bridge.sitl.scene import load_scene, named_scenes
 from firmware_bridge.sitl.transport import PtyTransport, UdpTransport, open_transport
-from firmware_bridge.sitl.vehicle import VehicleSettings
+from firmware_bridge.sitl.vehicle import VehicleSettings, vehicle_settings
 
 
 def _speed(text: str) -> float:
@@ -152,6 +161,20 @@ def add_sitl_arguments(parser: argparse.ArgumentParser) -> None:
         help="gusts per cluster, the first included (default 3:5)",
     )
     parser.add_argument(
+        "--physics",
+        choices=ENGINES,
+        default="simple",
+        help="physics engine: simple (default) or mujoco (real body geometry, soft contacts)",
+    )
+    parser.add_argument(
+        "--friction",
+        type=float,
+        default=MujocoParams().friction,
+        metavar="MU",
+        help=f"mujoco: sliding friction of the body on structures (default "
+        f"{MujocoParams().friction:g})",
+    )
+    parser.add_argument(
         "--record",
         type=Path,
         default=None,
@@ -252,7 +275,14 @@ def _run(args: argparse.Namespace) -> int:
         )
     if not 0.0 <= args.mocap_drop <= 1.0:
         raise BridgeError(f"--mocap-drop {args.mocap_drop}: must be within 0..1")
-    vs = VehicleSettings(gusts=_gusts(args, VehicleSettings().quad.mass))
+    if not (math.isfinite(args.friction) and args.friction >= 0):
+        raise BridgeError(f"--friction {args.friction}: must be >= 0", hint="e.g. --friction 0.3")
+    if args.physics == "mujoco":
+        mass = Airframe().mass
+        mj = MujocoParams(friction=args.friction)
+        vs = vehicle_settings("mujoco", gusts=_gusts(args, mass), mujoco=mj)
+    else:
+        vs = VehicleSettings(gusts=_gusts(args, VehicleSettings().quad.mass))
     if args.record is not None and math.isfinite(args.speed):
         raise BridgeError(
             "--record writes the simulation straight to a file and needs --speed max",
@@ -282,7 +312,8 @@ def _run(args: argparse.Namespace) -> int:
         print(f"SITL NatNet 4.1 to {args.mocap}", flush=True)
     uplink = link if args.log_commands is None else CommandLog(link, args.log_commands, sim)
     print(
-        f"scene {scene.name}, pilot {pilot}, seed {args.seed}, speed {args.speed}",
+        f"scene {scene.name}, pilot {pilot}, seed {args.seed}, speed {args.speed}, "
+        f"physics {args.physics}",
         file=sys.stderr,
         flush=True,
     )
@@ -405,7 +436,12 @@ def _record(args: argparse.Namespace, sim: Simulation) -> int:
 
     argv = ["groundstation", "sitl", "--scene", args.scene, "--pilot", args.pilot]
     argv += ["--seed", str(args.seed), "--gust-rate", str(args.gust_rate)]
-    argv += _gust_argv(args) + ["--speed", "max"]
+    argv += _gust_argv(args)
+    if args.physics != "simple":
+        argv += ["--physics", args.physics]
+        if args.friction != MujocoParams().friction:
+            argv += ["--friction", f"{args.friction:g}"]
+    argv += ["--speed", "max"]
     if args.duration is not None:
         argv += ["--duration", str(args.duration)]
     argv += ["--record", args.record.name]

@@ -8,7 +8,7 @@ import numpy as np
 
 from firmware_bridge.sitl.gusts import GustParams
 from firmware_bridge.sitl.physics import GRAVITY
-from firmware_bridge.sitl.vehicle import Vehicle, VehicleSettings
+from firmware_bridge.sitl.vehicle import Vehicle, vehicle_settings
 
 
 @dataclass
@@ -21,9 +21,13 @@ class Flight:
     outside_region: int
 
 
-def fly(scene, pilot, seconds, seed=0, gust_rate=0.0, until_done=False) -> Flight:
-    """Run ``pilot`` (a scripted pilot or None for manual) and sample the IMU at 200 Hz."""
-    v = Vehicle(scene, pilot, seed, VehicleSettings(gusts=GustParams(rate_per_min=gust_rate)))
+def fly(
+    scene, pilot, seconds, seed=0, gust_rate=0.0, until_done=False, physics="simple", gusts=None
+) -> Flight:
+    """Run ``pilot`` (a scripted pilot or None for manual) on the ``physics`` engine and sample
+    the IMU at 200 Hz. ``gusts`` (GustParams) replaces ``gust_rate`` when given."""
+    gusts = gusts or GustParams(rate_per_min=gust_rate)
+    v = Vehicle(scene, pilot, seed, vehicle_settings(physics, gusts=gusts))
     per = v.settings.physics_rate // 200
     ts, acc, accw, pos = [], [], [], []
     outside = 0

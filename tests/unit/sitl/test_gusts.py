@@ -11,7 +11,7 @@ from firmware_bridge.sitl.gusts import GustParams, GustSchedule
 from firmware_bridge.sitl.physics import GRAVITY
 from firmware_bridge.sitl.pilots import make_pilot
 from firmware_bridge.sitl.scene import load_scene
-from firmware_bridge.sitl.vehicle import Vehicle, VehicleSettings
+from firmware_bridge.sitl.vehicle import Vehicle, vehicle_settings
 
 REAL_WIND = dict(force=(5.0, 40.0), duration=(0.05, 0.3), rate_per_min=30.0)
 
@@ -41,13 +41,13 @@ def test_forces_and_durations_as_configured():
     pulses = [q for q in pulses if q[1] < 119.0]
     assert len(done) >= 30 and len(pulses) == len(done)
     for g, (t0, t1, peak) in zip(done, pulses, strict=True):
-        assert 5.0 <= g.peak_force <= 40.0 and g.peak_force == pytest.approx(g.peak)
+        assert 5.0 <= g.peak_force_n <= 40.0 and g.peak_force_n == pytest.approx(g.peak)
         assert 0.05 <= g.duration <= 0.3 and g.end == pytest.approx(g.start + g.duration)
         assert t0 == pytest.approx(g.start, abs=0.0011)
         assert t1 - t0 == pytest.approx(g.duration, abs=0.0021)  # the pulse, sampled at 1 kHz
-        assert peak == pytest.approx(g.peak_force, rel=0.01)  # the half-sine's top
+        assert peak == pytest.approx(g.peak_force_n, rel=0.01)  # the half-sine's top
         assert g.cluster is None
-    forces = np.array([g.peak_force for g in done])
+    forces = np.array([g.peak_force_n for g in done])
     assert forces.min() < 12 and forces.max() > 30  # the range is covered, not one value
 
 
@@ -58,13 +58,15 @@ def test_force_range_is_converted_with_the_mass():
     assert GustParams.from_forces(1.0) == GustParams()
 
 
-def test_clusters_of_gusts_within_seconds_at_one_spot():
+@pytest.mark.parametrize("physics", ["simple", "mujoco"])
+def test_clusters_of_gusts_within_seconds_at_one_spot(physics):
     scene = load_scene("paper")
     gusts = GustParams.from_forces(
-        1.0, force=(5.0, 15.0), duration=(0.05, 0.2), rate_per_min=6.0, cluster_probability=0.6
+        1.0, force=(5.0, 15.0), duration=(0.05, 0.2), rate_per_min=12.0, cluster_probability=0.6
     )
-    v = Vehicle(scene, make_pilot("hover", scene, 0.2, 0.1), 11, VehicleSettings(gusts=gusts))
-    while v.t < 90.0:
+    vs = vehicle_settings(physics, gusts=gusts)
+    v = Vehicle(scene, make_pilot("hover", scene, 0.2, 0.1), 11, vs)
+    while v.t < 40.0:
         v.step()
     history = [g for g in v.gusts.history if g.end < v.t - 1.0]
     ids = {g.cluster for g in history if g.cluster is not None}

@@ -5,8 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from firmware_bridge.sitl.pilots import PilotError, Planner, make_pilot, plan_survey
+from firmware_bridge.sitl.pilots import (
+    PilotError,
+    Planner,
+    ScriptPilot,
+    _touch_actions,
+    make_pilot,
+    plan_survey,
+)
 from firmware_bridge.sitl.scene import load_scene, named_scenes
+from firmware_bridge.sitl.vehicle import planning_cylinder, vehicle_settings
 from tests.unit.sitl.flight import fly
 
 R, H = 0.2, 0.1
@@ -20,7 +28,22 @@ EXPECTED = {
              (1, "side"), (2, "side"), (3, "side")},
     # The paper scene's cylinder top (1.6 m) leaves no room below the 2 m ceiling to approach.
     "paper": {(0, "xmin"), (0, "xmax"), (0, "ymin"), (0, "ymax"), (0, "zmax"), (1, "side")},
+    # Around the origin: wall, pillar (top 1.6 m: no room), crate, sphere.
+    "yard": {(0, "xmin"), (0, "xmax"), (0, "ymin"), (0, "ymax"), (0, "zmax"), (1, "side"),
+             (2, "xmin"), (2, "xmax"), (2, "ymin"), (2, "ymax"), (2, "zmax"), (3, "surface")},
+    # Far from the origin (x 30-38, y -14..-10): wall, two pillars, box.
+    "dock": {(0, "xmin"), (0, "xmax"), (0, "ymin"), (0, "ymax"), (0, "zmax"), (1, "side"),
+             (1, "top"), (2, "side"), (2, "top"), (3, "xmin"), (3, "xmax"), (3, "ymin"),
+             (3, "ymax"), (3, "zmax")},
 }  # fmt: skip
+# The MuJoCo airframe (rims 0.305 m, 0.22 m tall) needs more room: what it can still touch.
+EXPECTED_GUARDED = {
+    "yard": {(0, "xmin"), (0, "xmax"), (0, "ymin"), (0, "ymax"), (1, "side"), (2, "xmin"),
+             (2, "xmax"), (2, "ymin"), (2, "ymax"), (2, "zmax"), (3, "surface")},
+    "dock": {(0, "xmin"), (0, "xmax"), (0, "ymin"), (0, "ymax"), (0, "zmax"), (1, "side"),
+             (2, "side"), (2, "top"), (3, "ymin"), (3, "ymax"), (3, "zmax")},
+}  # fmt: skip
+NEW_SCENES = ("yard", "dock")
 
 
 @pytest.mark.parametrize("name", sorted(EXPECTED))
@@ -31,7 +54,17 @@ def test_plan_covers_the_reachable_faces(name):
     assert not any(f[1] == "zmin" for f in faces if name != "pier")
 
 
-@pytest.mark.parametrize("name", named_scenes())
+@pytest.mark.parametrize("name", sorted(EXPECTED_GUARDED))
+def test_plan_for_the_guarded_airframe(name):
+    r, h = planning_cylinder(vehicle_settings("mujoco"))
+    faces = {t.face for t in plan_survey(load_scene(name), r, h)}
+    assert faces == EXPECTED_GUARDED[name]
+
+
+@pytest.mark.parametrize(
+    "name",
+    [n if n not in NEW_SCENES else pytest.param(n, marks=pytest.mark.soak) for n in named_scenes()],
+)
 def test_survey_touches_every_planned_face_and_stays_inside(name):
     scene = load_scene(name)
     pilot = make_pilot("survey", scene, R, H)
@@ -115,3 +148,32 @@ def test_varied_pilot_draws_speed_angle_and_pause_from_the_seed():
     assert [x[1:] for x in b.actions if x[0] == "touch"] == [x[1:] for x in touches]
     c = make_pilot("varied", scene, R, H, seed=6)
     assert [x[2] for x in c.actions if x[0] == "touch"] != [x[2] for x in touches]
+
+
+@pytest.mark.parametrize("physics", ["simple", "mujoco"])
+@pytest.mark.parametrize("name", NEW_SCENES)
+def test_new_scenes_fly_touches_of_three_structures(name, physics):
+    """Around and far from the origin: the planner's first touches of three different
+    structures are flown and land on the planned faces (full surveys: soak)."""
+    scene = load_scene(name)
+    r, h = planning_cylinder(vehicle_settings(physics))
+    planner = Planner(scene, r, h)
+    targets, seen = [], set()
+    for tgt in plan_survey(scene, r, h):
+        if tgt.face[0] not in seen:
+            seen.add(tgt.face[0])
+            targets.append(tgt)
+    targets = targets[:3]
+    assert len(targets) == 3
+    acts, here = [("hover", 0.5)], scene.start
+    for tgt in targets:
+        acts += _touch_actions(planner, here, tgt, 0.8)
+        here = tgt.standoff
+    pilot = ScriptPilot(scene, acts)
+    f = fly(scene, pilot, 120.0, seed=3, until_done=True, physics=physics)
+    assert pilot.done and f.outside_region == 0
+    assert pilot.touched == [t.face for t in targets]
+    events = f.vehicle.tracker.events
+    assert [e.object_index for e in events] == [t.face[0] for t in targets]
+    pts = np.array([e.onset_point for e in events])
+    assert np.max(np.abs(scene.signed_distance(pts))) < 2e-3

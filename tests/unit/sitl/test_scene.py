@@ -62,9 +62,25 @@ def test_load_errors(tmp_path):
         load_scene(bad)
 
 
+def test_scenes_around_and_far_from_the_origin():
+    yard, dock = load_scene("yard"), load_scene("dock")
+    assert yard.region_min == (-4.0, -2.0, 0.0) and yard.region_max == (4.0, 2.0, 2.0)
+    assert min(dock.region_min[:2]) <= -10.0 and dock.region_min[0] >= 30.0
+    for scene in (yard, dock):
+        assert len(scene.objects) >= 3
+        kinds = {type(o).__name__ for o in scene.objects}
+        assert {"Box", "Cylinder"} <= kinds
+        lo, hi = np.array(scene.region_min), np.array(scene.region_max)
+        pts = scene.sample_surface(np.random.default_rng(0), 400)
+        assert np.all(pts >= lo - 1e-9) and np.all(pts <= hi + 1e-9)  # inside the region
+    # Structures on both sides of the origin (negative coordinates).
+    xs = [o.closest((0.0, 0.0, 1.0))[1][0] for o in yard.objects]
+    assert min(xs) < 0 < max(xs)
+
+
 def test_named_scenes_load_and_round_trip(tmp_path):
     names = named_scenes()
-    assert {"wall", "pillar", "pier", "paper"} <= set(names)
+    assert {"wall", "pillar", "pier", "paper", "yard", "dock"} <= set(names)
     for name in names:
         scene = load_scene(name)
         assert scene.objects
