@@ -106,8 +106,8 @@ GUSTS = (
     "--gust-rate", "8", "--gust-force", "5:40", "--gust-duration", "0.05:0.3",
     "--gust-cluster", "0.3", "--gust-cluster-size", "3:6",
 )  # fmt: skip
-SCENES = ("wall", "pillar", "pier")
-FREE_SCENES = ("wall", "pier")
+SCENES = ("wall", "pillar", "pier", "yard", "dock")
+FREE_SCENES = ("wall", "yard")
 
 
 def flight_suite(
@@ -323,7 +323,7 @@ def label_run(run: Any, engine: str) -> tuple[list[LabelledEvent], list[TruthIte
                 speed_mps=truth_speed(c) if kind in ("touch", "slow_touch") else math.nan,
                 angle_deg=float(c.get("approach_angle_deg", math.nan) or math.nan),
                 force_n=truth_force(c, truth) if kind == "gust" else math.nan,
-                cluster=c.get("cluster_id") not in (None, -1) if kind == "gust" else False,
+                cluster=c.get("cluster") not in (None, -1) if kind == "gust" else False,
                 surface_m=surf,
                 point_m=pt,
             )
@@ -333,7 +333,7 @@ def label_run(run: Any, engine: str) -> tuple[list[LabelledEvent], list[TruthIte
             name, engine, c["kind"], k in found,
             truth_speed(c) if c["kind"] in ("touch", "slow_touch") else math.nan,
             truth_force(c, truth) if c["kind"] == "gust" else math.nan,
-            c.get("cluster_id") not in (None, -1) if c["kind"] == "gust" else False,
+            c.get("cluster") not in (None, -1) if c["kind"] == "gust" else False,
         )
         for k, c in enumerate(contacts)
     ]  # fmt: skip
@@ -612,12 +612,19 @@ DEFAULT_VARIANTS = (
 )
 
 #: The detector's vehicle body per engine, as a user describes their drone in ``[vehicle]``:
-#: the simple engine collides with the paper's cylinder, the MuJoCo airframe with its guards.
+#: the simple engine collides with the paper's cylinder, the MuJoCo airframe with its guards
+#: (rings of 0.125 m centreline radius and 0.01 m tube on 0.17 m arms, a 12 x 8 x 5 cm body,
+#: 8 cm legs; ``firmware_bridge/sitl/airframe.py``).
 VEHICLE = {
     "simple": (),
-    "mujoco": ("vehicle.shape=guards",),
+    "mujoco": (
+        "vehicle.shape=guards", "vehicle.layout=x", "vehicle.arm_length_m=0.17",
+        "vehicle.guard_radius_m=0.135", "vehicle.guard_z_m=0.0",
+        "vehicle.body_half_m=0.06,0.04,0.025", "vehicle.leg_length_m=0.08",
+        "vehicle.leg_offset_m=0.1",
+    ),
     "real": (),
-}
+}  # fmt: skip
 
 
 def detect_and_label(

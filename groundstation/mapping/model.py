@@ -174,7 +174,7 @@ class SurfaceModel:
     @staticmethod
     def _key(ts: TrainingSet, g: int) -> tuple:
         ev = int(ts.event_ids[g])
-        return ("e", ev) if ev >= 0 else ("o", int(ts.group_ids[g][0]))
+        return ("e", ev) if ev >= 0 else ("o", int(ts.group_ids[g].min()))
 
     def warm_start(self, ts: TrainingSet) -> np.ndarray:
         """Step 3: each event's posterior from the last fit, its prior when new."""
@@ -266,20 +266,20 @@ class SurfaceModel:
         self._check()
         ts = self.training_set_
         post = self.fit_.posterior_false_
-        u_row = dict(zip(ts.row_ids.tolist(), (1.0 / self.fit_.weights_).tolist(), strict=True))
-        ids, u, pf = [], [], []
+        w = self.fit_.weights_
+        u_by, p_by = {}, {}
+        for r, members in enumerate(ts.row_members):
+            g = int(ts.groups.row_group[r])
+            for i in members.tolist():
+                u_by[i] = 1.0 / float(w[r])
+                p_by[i] = float(post[g]) if g >= 0 else 0.0
         for g, members in enumerate(ts.group_ids):
             for i in members.tolist():
-                ids.append(i)
-                u.append(u_row.get(i, math.nan))
-                pf.append(float(post[g]))
-        in_group = set(ids)
-        for i in ts.row_ids.tolist():
-            if i not in in_group:
-                ids.append(i)
-                u.append(u_row[i])
-                pf.append(0.0)
-        return np.asarray(ids, np.int64), np.asarray(u, float), np.asarray(pf, float)
+                p_by[i] = float(post[g])
+        ids = np.asarray(sorted(p_by), dtype=np.int64)
+        u = np.asarray([u_by.get(i, math.nan) for i in ids.tolist()], dtype=np.float64)
+        pf = np.asarray([p_by[i] for i in ids.tolist()], dtype=np.float64)
+        return ids, u, pf
 
     def predict(self, Xq: np.ndarray, return_std: bool = False):
         """Posterior mean (and latent std) at ``Xq`` (m, d), metres."""

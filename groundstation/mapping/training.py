@@ -1,9 +1,11 @@
 """From observations to the rows, groups and evidence the mixture GP fits (pure).
 
-- **Rows.** Contact (y = 0) and internal (y = ``inside_value``) points keep one row each: they
-  carry the shape. Free-space points (y = +1) are thinned to one per ``free_voxel_m`` voxel (the
-  first one seen, so a row never changes once chosen): the path flown is dense where the vehicle
-  lingers, and a free point per voxel is all the potential needs.
+- **Rows.** Contact (y = 0) and internal (y = ``inside_value``) points carry the shape: each
+  event keeps one row per ``contact_voxel_m`` voxel of its samples (a 25 Hz press along a wall
+  is tens of samples a few millimetres apart: one piece of evidence per voxel). Free-space
+  points (y = +1) are thinned to one per ``free_voxel_m`` voxel (the first one seen, so a row
+  never changes once chosen): the path flown is dense where the vehicle lingers, and a free
+  point per voxel is all the potential needs.
 - **Noise.** A contact or internal row's variance is ``contact_noise^2 + (slope * sigma_m)^2``
   (``sigma_m``: the detector's placement uncertainty in metres; ``slope``: the potential's change
   per metre, from 0 at the surface to ``inside_value`` at ``d_in`` behind it); a free row's is
@@ -14,7 +16,7 @@
   ``tangent_slope_noise`` (label units per metre: a normal off by 20 deg on a potential rising
   5 per metre), so the surface goes on flat for about a length scale.
 - **Groups.** The rows of one contact event form a group (contacts without an event id are
-  groups of their own, with the internal point of the same time). Its prior ``P(false)`` is the
+  grouped into runs no more than ``event_gap_s`` apart in time). Its prior ``P(false)`` is the
   detector's ``p_false`` (mean over its rows) where known, else ``prior_false``.
 - **Bursts.** Events closer than ``burst_gap_s`` in time and ``burst_radius_m`` in space are
   chained into one burst, left out together when the mixture tests them (a gust that keeps
@@ -55,6 +57,8 @@ class TrainingPolicy:
     sweep_exclude_s: float = 0.5
     sweep_tolerance_m: float = 0.03
     sweep_llr: float = 4.6
+    contact_voxel_m: float = 0.05
+    event_gap_s: float = 0.2
     tangent_slope_noise: float = 0.0
     plane_reach_m: float = 0.0
     plane_noise_per_m: float = 0.5
@@ -73,8 +77,9 @@ class TrainingSet:
     y : (n,) float64
         Potential values (0 contact, ``inside_value`` internal, +1 free), or 0 for a tangent.
     noise_var : (n,) float64
-    row_ids : (n,) int64
-        Observation id of each row (-1 for tangent rows).
+    row_members : tuple of (k,) int64 arrays
+        Observation ids each row stands for (a group's samples in one voxel share a row;
+        empty for tangent-plane rows).
     groups : Groups
     event_ids : (G,) int64
         Detector event id of each group (-1 for contacts without one).
@@ -90,7 +95,7 @@ class TrainingSet:
     directions: np.ndarray
     y: np.ndarray
     noise_var: np.ndarray
-    row_ids: np.ndarray
+    row_members: tuple[np.ndarray, ...]
     groups: Groups
     event_ids: np.ndarray
     group_ids: tuple[np.ndarray, ...]
@@ -101,8 +106,32 @@ class TrainingSet:
         return int(self.X.shape[0])
 
 
-def _group_key(o: Observation) -> tuple:
-    return ("e", int(o.event_id)) if o.event_id >= 0 else ("t", int(o.t_ns))
+def _event_keys(obs: Sequence[Observation], gap_ns: int) -> dict[int, tuple]:
+    """Group key of every contact and internal observation: its detector event, or, without
+    one, the run of such observations no more than ``gap_ns`` apart in time."""
+    keys: dict[int, tuple] = {}
+    loose = sorted((o for o in obs if o.label <= 0 and o.event_id < 0), key=lambda o: o.t_ns)
+    run, last = -1, None
+    for o in loose:
+        if last is None or o.t_ns - last > gap_ns:
+            run += 1
+        keys[o.id] = ("run", run)
+        last = o.t_ns
+    for o in obs:
+        if o.label <= 0 and o.event_id >= 0:
+            keys[o.id] = ("event", int(o.event_id))
+    return keys
+
+
+@dataclasses.dataclass
+class _Group:
+    event_id: int
+    ids: list[int] = dataclasses.field(default_factory=list)
+    priors: list[float] = dataclasses.field(default_factory=list)
+    t: list[int] = dataclasses.field(default_factory=list)
+    contacts: list[np.ndarray] = dataclasses.field(default_factory=list)
+    normals: list[np.ndarray] = dataclasses.field(default_factory=list)
+    cells: dict = dataclasses.field(default_factory=dict)  # (label, voxel) -> [ids, xs, s2s]
 
 
 def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> TrainingSet:
@@ -110,14 +139,9 @@ def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> Tr
     p = policy
     obs = sorted(obs, key=lambda o: o.id)
     slope = abs(p.inside_value) / p.internal_depth_m
-    keys: dict[tuple, int] = {}
-    rows_X, rows_y, rows_s2, rows_id, rows_g = [], [], [], [], []
-    g_ids: list[list[int]] = []
-    g_event: list[int] = []
-    g_prior: list[list[float]] = []
-    g_t: list[list[int]] = []
-    g_contacts: list[list[np.ndarray]] = []
-    g_normals: list[list[np.ndarray]] = []
+    keys = _event_keys(obs, int(p.event_gap_s * 1e9))
+    groups: dict[tuple, _Group] = {}
+    rows_X, rows_y, rows_s2, rows_m, rows_g = [], [], [], [], []
     free_seen: set[tuple[int, ...]] = set()
     free_pts, free_t = [], []
     for o in obs:
@@ -132,51 +156,56 @@ def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> Tr
             rows_X.append(x)
             rows_y.append(1.0)
             rows_s2.append(p.free_noise**2)
-            rows_id.append(o.id)
+            rows_m.append(np.array([o.id], dtype=np.int64))
             rows_g.append(-1)
             continue
-        k = _group_key(o)
-        g = keys.get(k)
-        if g is None:
-            g = keys[k] = len(g_ids)
-            g_ids.append([])
-            g_event.append(int(o.event_id))
-            g_prior.append([])
-            g_t.append([])
-            g_contacts.append([])
-            g_normals.append([])
-        g_ids[g].append(o.id)
-        g_t[g].append(int(o.t_ns))
+        grp = groups.setdefault(keys[o.id], _Group(int(o.event_id)))
+        grp.ids.append(o.id)
+        grp.t.append(int(o.t_ns))
         if math.isfinite(o.p_false):
-            g_prior[g].append(float(o.p_false))
+            grp.priors.append(float(o.p_false))
         if o.label == 0:
-            g_contacts[g].append(x)
-            g_normals[g].append(np.asarray(o.normal, dtype=np.float64))
+            grp.contacts.append(x)
+            grp.normals.append(np.asarray(o.normal, dtype=np.float64))
         sig = o.sigma_m if math.isfinite(o.sigma_m) else 0.0
-        rows_X.append(x)
-        rows_y.append(0.0 if o.label == 0 else p.inside_value)
-        rows_s2.append(p.contact_noise**2 + (slope * sig) ** 2)
-        rows_id.append(o.id)
-        rows_g.append(g)
-    d = len(rows_X[0]) if rows_X else 3
+        cell = (int(o.label), *np.floor(x / p.contact_voxel_m).astype(np.int64).tolist())
+        ids, xs, s2s = grp.cells.setdefault(cell, ([], [], []))
+        ids.append(o.id)
+        xs.append(x)
+        s2s.append(p.contact_noise**2 + (slope * sig) ** 2)
+    glist = list(groups.values())
+    d = (
+        len(rows_X[0])
+        if rows_X
+        else (len(glist[0].contacts[0]) if glist and glist[0].contacts else 3)
+    )
     dirs = [np.zeros(d)] * len(rows_X)
+    for g, grp in enumerate(glist):
+        for (label, *_), (ids, xs, s2s) in grp.cells.items():
+            rows_X.append(np.mean(xs, axis=0))  # a group's samples in one voxel: one row
+            rows_y.append(0.0 if label == 0 else p.inside_value)
+            rows_s2.append(float(np.mean(s2s)))
+            rows_m.append(np.asarray(ids, dtype=np.int64))
+            rows_g.append(g)
+            dirs.append(np.zeros(d))
     if p.tangent_slope_noise > 0 and d == 3:
-        for g in range(len(g_ids)):
-            if not g_contacts[g] or not g_normals[g]:
+        for g, grp in enumerate(glist):
+            if not grp.contacts:
                 continue
-            n = np.mean(g_normals[g], axis=0)
+            n = np.mean(grp.normals, axis=0)
             if float(np.linalg.norm(n)) < 0.5:
                 continue
             n = n / np.linalg.norm(n)
             a = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
             a /= np.linalg.norm(a)
-            centre = np.mean(g_contacts[g], axis=0)
             b = np.cross(n, a)
+            centre = np.mean(grp.contacts, axis=0)
+            none = np.zeros(0, dtype=np.int64)
             for v in (a, b):
                 rows_X.append(centre)
                 rows_y.append(0.0)
                 rows_s2.append(p.tangent_slope_noise**2)
-                rows_id.append(-1)
+                rows_m.append(none)
                 rows_g.append(g)
                 dirs.append(v)
             if p.plane_reach_m > 0:
@@ -186,33 +215,36 @@ def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> Tr
                     rows_X.append(centre + rho * v)
                     rows_y.append(0.0)
                     rows_s2.append(s2_plane)
-                    rows_id.append(-1)
+                    rows_m.append(none)
                     rows_g.append(g)
                     dirs.append(np.zeros(d))
     X = np.asarray(rows_X, dtype=np.float64).reshape(-1, d)
-    prior = np.array([float(np.mean(v)) if v else p.prior_false for v in g_prior], dtype=np.float64)
-    t_span = [(min(v), max(v)) for v in g_t]
-    centre = [
-        np.mean(c, axis=0) if c else np.full(d, np.nan) for c in g_contacts
-    ]  # contact centroid of each group
-    burst = _bursts(t_span, centre, p)
-    swept = _swept(g_contacts, t_span, np.asarray(free_pts).reshape(-1, d),
-                   np.asarray(free_t, dtype=np.int64), p)  # fmt: skip
-    groups = Groups(
-        row_group=np.asarray(rows_g, dtype=np.int64),
-        prior_false=prior,
-        burst=burst,
-        extra_llr=np.where(swept, p.sweep_llr, 0.0),
+    prior = np.array(
+        [float(np.mean(grp.priors)) if grp.priors else p.prior_false for grp in glist],
+        dtype=np.float64,
     )
+    t_span = [(min(grp.t), max(grp.t)) for grp in glist]
+    centre = [
+        np.mean(grp.contacts, axis=0) if grp.contacts else np.full(d, np.nan) for grp in glist
+    ]
+    burst = _bursts(t_span, centre, p)
+    contacts = [grp.contacts for grp in glist]
+    swept = _swept(contacts, t_span, np.asarray(free_pts).reshape(-1, d),
+                   np.asarray(free_t, dtype=np.int64), p)  # fmt: skip
     return TrainingSet(
         X=X,
         directions=np.asarray(dirs, dtype=np.float64).reshape(-1, d),
         y=np.asarray(rows_y, dtype=np.float64),
         noise_var=np.asarray(rows_s2, dtype=np.float64),
-        row_ids=np.asarray(rows_id, dtype=np.int64),
-        groups=groups,
-        event_ids=np.asarray(g_event, dtype=np.int64),
-        group_ids=tuple(np.asarray(v, dtype=np.int64) for v in g_ids),
+        row_members=tuple(rows_m),
+        groups=Groups(
+            row_group=np.asarray(rows_g, dtype=np.int64),
+            prior_false=prior,
+            burst=burst,
+            extra_llr=np.where(swept, p.sweep_llr, 0.0),
+        ),
+        event_ids=np.asarray([grp.event_id for grp in glist], dtype=np.int64),
+        group_ids=tuple(np.asarray(grp.ids, dtype=np.int64) for grp in glist),
         swept=swept,
         n_raw=len(obs),
     )
