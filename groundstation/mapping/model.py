@@ -34,11 +34,12 @@ import numpy as np
 from groundstation.contact.detector import Observation
 from groundstation.contact.vehicle import VehicleSettings
 from groundstation.errors import InputDataError, NotFittedError
-from groundstation.mapping.field import BandField, narrow_band_field
+from groundstation.mapping.field import narrow_band_field
 from groundstation.mapping.grid import Grid
-from groundstation.mapping.mixture import EventMixtureGPIS, KernelBounds, MixtureFit
+from groundstation.mapping.mixture import EventMixtureGPIS, Groups, KernelBounds, MixtureFit
 from groundstation.mapping.settings import MappingSettings, SurfaceSettings
 from groundstation.mapping.surface import SurfaceMesh, confident_part, extract_surface
+from groundstation.mapping.tiles import TileLayout, signature
 from groundstation.mapping.training import TrainingPolicy, TrainingSet, build_training_set
 
 _DEFAULT_MAPPING = MappingSettings()
@@ -157,6 +158,8 @@ class SurfaceModel:
         self._posterior_by_event: dict[tuple, float] = {}
         self._theta: tuple[float, float] | None = None
         self._n_theta = 0
+        self._tiles: dict[tuple, _TileFit] = {}
+        self._layout = TileLayout(mapping.tile_m)
 
     # ------------------------------------------------------------------ policy steps
 
@@ -185,12 +188,10 @@ class SurfaceModel:
                 start[g] = p
         return start
 
-    def estimate(self, ts: TrainingSet, start: np.ndarray, learn: bool) -> EventMixtureGPIS:
-        """Step 4: the event-mixture EM on the rows."""
+    def _estimator(self, learn: bool, warm: bool) -> EventMixtureGPIS:
         ms = self.mapping
-        warm = self._theta is not None
         ell, sf2 = self._theta or (max(ms.lengthscale, ms.lengthscale_min), ms.signal_var)
-        est = EventMixtureGPIS(
+        return EventMixtureGPIS(
             lengthscale=ell,
             signal_var=sf2,
             bounds=self.bounds,
@@ -201,7 +202,88 @@ class SurfaceModel:
             tol=ms.flag_tol,
             chunk_mb=self.surface.chunk_mb,
         )
-        return est.fit(ts.X, ts.y, ts.noise_var, ts.groups, start=start, directions=ts.directions)
+
+    def _subset(self, ts: TrainingSet, rows: np.ndarray, start: np.ndarray):
+        """The rows ``rows`` with their groups re-indexed: (X, y, s2, dirs, Groups, start, gidx)."""
+        rg = ts.groups.row_group[rows]
+        gidx = np.unique(rg[rg >= 0])
+        local = np.full(ts.groups.prior_false.size, -1, dtype=np.int64)
+        local[gidx] = np.arange(gidx.size)
+        groups = Groups(
+            row_group=np.where(rg >= 0, local[np.maximum(rg, 0)], -1),
+            prior_false=ts.groups.prior_false[gidx],
+            burst=ts.groups.burst[gidx],
+            extra_llr=ts.groups.extra_llr[gidx],
+        )
+        return (
+            ts.X[rows],
+            ts.y[rows],
+            ts.noise_var[rows],
+            ts.directions[rows],
+            groups,
+            start[gidx],
+            gidx,
+        )
+
+    def estimate(self, ts: TrainingSet, start: np.ndarray, learn: bool) -> np.ndarray:
+        """Step 4: the event-mixture EM, tile by tile (``mapping/tiles.py``): only tiles whose
+        rows, priors or decisions changed are refitted. Returns the posterior P(false) of every
+        group (from the tile holding its contacts' centroid)."""
+        layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * (self._theta or (0.25,))[0]))
+        warm = self._theta is not None
+        if learn:  # on the tile with the most rows: theta is shared by every tile
+            keys = layout.keys(ts.X[ts.groups.row_group >= 0])
+            uniq, counts = np.unique(keys, axis=0, return_counts=True)
+            key = tuple(int(v) for v in uniq[int(np.argmax(counts))])
+            rows = layout.members(ts.X, key)
+            X, y, s2, V, groups, st, _ = self._subset(ts, rows, start)
+            est = self._estimator(True, warm).fit(X, y, s2, groups, start=st, directions=V)
+            self._theta = (est.lengthscale_, est.signal_var_)
+            self._tiles = {}  # a new kernel: every tile refits and re-meshes
+            layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * self._theta[0]))
+        grouped = ts.groups.row_group >= 0
+        tile_keys = {
+            tuple(int(v) for v in k) for k in np.unique(layout.keys(ts.X[grouped]), axis=0)
+        }
+        decided = start > 0.5
+        fitted: dict[tuple, _TileFit] = {}
+        for key in sorted(tile_keys):
+            rows = layout.members(ts.X, key)
+            X, y, s2, V, groups, st, gidx = self._subset(ts, rows, start)
+            sig = signature(X, y, s2, V, groups.row_group, np.round(groups.prior_false, 4),
+                            groups.burst, groups.extra_llr, decided[gidx])  # fmt: skip
+            old = self._tiles.get(key)
+            if old is not None and old.signature == sig:
+                fitted[key] = old
+                continue
+            est = self._estimator(False, warm).fit(X, y, s2, groups, start=st, directions=V)
+            fitted[key] = _TileFit(key, rows, gidx, sig, est, None)
+        self._tiles = fitted
+        self._layout = layout
+        post = ts.groups.prior_false.copy()
+        owner = self._group_owner(ts, layout)
+        for g in range(post.size):
+            tile = fitted.get(owner[g])
+            if tile is None or g not in tile.local:
+                tile = next((f for f in fitted.values() if g in f.local), None)
+            if tile is not None:
+                post[g] = tile.est.posterior_false_[tile.local[g]]
+        return post
+
+    @staticmethod
+    def _group_owner(ts: TrainingSet, layout: TileLayout) -> list[tuple]:
+        """The tile of each group's row centroid (its contacts and internal points)."""
+        rg = ts.groups.row_group
+        out = []
+        sums = np.zeros((ts.groups.prior_false.size, ts.X.shape[1]))
+        cnt = np.zeros(ts.groups.prior_false.size)
+        ok = rg >= 0
+        np.add.at(sums, rg[ok], ts.X[ok])
+        np.add.at(cnt, rg[ok], 1.0)
+        cent = sums / np.maximum(cnt, 1.0)[:, None]
+        for k in layout.keys(cent):
+            out.append(tuple(int(v) for v in k))
+        return out
 
     # ------------------------------------------------------------------ fit
 
@@ -221,17 +303,35 @@ class SurfaceModel:
             learn = self.learn_kernel_now(ts)
             start = self.warm_start(ts)
             t1 = time.perf_counter()
-            est = self.estimate(ts, start, learn)
+            post = self.estimate(ts, start, learn)
             t2 = time.perf_counter()
         if learn:
             self._n_theta = len(ts)
-        self._theta = (est.lengthscale_, est.signal_var_)
-        self._posterior_by_event = {
-            self._key(ts, g): float(p) for g, p in enumerate(est.posterior_false_)
+        self.training_set_ = ts
+        self.posterior_false_ = post
+        self._posterior_by_event = {self._key(ts, g): float(p) for g, p in enumerate(post)}
+        fits = [f.est.fit_ for f in self._tiles.values()]
+        ell, sf2 = self._theta
+        self.summary_ = MixtureFit(
+            lengthscale=ell,
+            signal_var=sf2,
+            log_marginal=float(sum(f.log_marginal for f in fits)),
+            n_iter=max((f.n_iter for f in fits), default=0),
+            converged=all(f.converged for f in fits),
+            at_bounds=self.bounds.at_bound(ell, sf2),
+            n_train=len(ts),
+            n_groups=int(post.size),
+            n_flagged=int(np.sum(post > 0.5)),
+            reasons=() if all(f.converged for f in fits) else ("not_converged",),
+        )
+        self.fit_ = self  # fitted marker (the tiles hold the estimators)
+        self.timings_ = {
+            "rows_s": t1 - t0,
+            "fit_s": t2 - t1,
+            "tiles": float(len(self._tiles)),
+            "tiles_refit": float(sum(f.mesh is None for f in self._tiles.values())),
         }
-        self.fit_, self.training_set_, self.summary_ = est, ts, est.fit_
-        self.timings_ = {"rows_s": t1 - t0, "fit_s": t2 - t1}
-        return est.fit_
+        return self.summary_
 
     def _check(self) -> None:
         if self.fit_ is None:
@@ -242,12 +342,21 @@ class SurfaceModel:
     @property
     def lengthscale_(self) -> float:
         self._check()
-        return self.fit_.lengthscale_
+        return self._theta[0]
 
     @property
     def signal_var_(self) -> float:
         self._check()
-        return self.fit_.signal_var_
+        return self._theta[1]
+
+    @property
+    def weights_(self) -> np.ndarray:
+        """Row precisions of the final decisions (1/s^2 if true, excluded if false)."""
+        ts = self.training_set_
+        rg = ts.groups.row_group
+        w = 1.0 / ts.noise_var
+        false = (rg >= 0) & (self.posterior_false_[np.maximum(rg, 0)] > 0.5)
+        return np.where(false, 1.0 / (1e4 * self.mapping.outlier_var), w)
 
     def event_posteriors(self) -> dict[int, float]:
         """Posterior P(false) of every detector event (id -> probability)."""
@@ -255,7 +364,7 @@ class SurfaceModel:
         ts = self.training_set_
         return {
             int(e): float(p)
-            for e, p in zip(ts.event_ids, self.fit_.posterior_false_, strict=True)
+            for e, p in zip(ts.event_ids, self.posterior_false_, strict=True)
             if e >= 0
         }
 
@@ -265,8 +374,8 @@ class SurfaceModel:
         members without a row) and its event's posterior P(false) (0 for free space)."""
         self._check()
         ts = self.training_set_
-        post = self.fit_.posterior_false_
-        w = self.fit_.weights_
+        post = self.posterior_false_
+        w = self.weights_
         u_by, p_by = {}, {}
         for r, members in enumerate(ts.row_members):
             g = int(ts.groups.row_group[r])
@@ -282,10 +391,24 @@ class SurfaceModel:
         return ids, u, pf
 
     def predict(self, Xq: np.ndarray, return_std: bool = False):
-        """Posterior mean (and latent std) at ``Xq`` (m, d), metres."""
+        """Posterior mean (and latent std) at ``Xq`` (m, d), metres, from each point's tile
+        (the prior where no tile was fitted)."""
         self._check()
+        Xq = np.asarray(Xq, dtype=np.float64)
+        mean = np.full(Xq.shape[0], self.mapping.prior_mean)
+        std = np.full(Xq.shape[0], math.sqrt(self.signal_var_))
+        keys = self._layout.keys(Xq)
         with blas_threads(self.mapping.blas_threads):
-            return self.fit_.predict(Xq, return_std=return_std)
+            for key, tile in self._tiles.items():
+                sel = np.flatnonzero(np.all(keys == np.asarray(key), axis=1))
+                if sel.size == 0:
+                    continue
+                out = tile.est.predict(Xq[sel], return_std=return_std)
+                if return_std:
+                    mean[sel], std[sel] = out
+                else:
+                    mean[sel] = out
+        return (mean, std) if return_std else mean
 
     # ------------------------------------------------------------------ region, field, mesh
 
@@ -305,82 +428,127 @@ class SurfaceModel:
             lo, hi = np.maximum(lo, clo), np.minimum(hi, chi)
         return Region(lo, hi, data_lo, data_hi, clipped)
 
-    def mesh_grid(self) -> Grid:
-        """The fine grid: spacing ``max(spacing, l / voxels_per_lengthscale)`` over the region."""
-        reg = self.region()
-        if reg.lo.size != 3:
-            raise InputDataError("mesh() needs 3D data; use predict on a 2D grid instead")
+    def spacing_m(self) -> float:
+        """Mesh grid spacing: ``max(spacing, l / voxels_per_lengthscale)``."""
         ss = self.surface
-        spacing = max(ss.spacing, self.lengthscale_ / ss.voxels_per_lengthscale)
-        hi = np.maximum(reg.hi, reg.lo + 2.0 * spacing)
-        return Grid.from_bounds(reg.lo, hi, spacing)
+        return max(ss.spacing, self.lengthscale_ / ss.voxels_per_lengthscale)
 
     def reach_m(self) -> float:
         """How far from a trusted contact the surface may be drawn: a tangent plane's reach
         plus 2.5 length scales (beyond, the field is the prior and its zero set is noise)."""
         return self.mapping.plane_reach_m + 2.5 * self.lengthscale_
 
-    def anchors(self) -> np.ndarray:
+    def anchors(self, rows: np.ndarray | None = None) -> np.ndarray:
         """(k, d) contact and internal rows of the events decided true: where surface can be."""
         ts = self.training_set_
         g = ts.groups.row_group
         trusted = np.zeros(len(ts), dtype=bool)
         ok = g >= 0
-        trusted[ok] = self.fit_.posterior_false_[g[ok]] <= 0.5
+        trusted[ok] = self.posterior_false_[g[ok]] <= 0.5
         value = np.einsum("ij,ij->i", ts.directions, ts.directions) == 0.0
-        return ts.X[trusted & value & (ts.y <= 0.0)]
+        sel = trusted & value & (ts.y <= 0.0)
+        if rows is not None:
+            mask = np.zeros(len(ts), dtype=bool)
+            mask[rows] = True
+            sel &= mask
+        return ts.X[sel]
 
-    def _active(self):
+    def _clip(self) -> tuple[np.ndarray, np.ndarray]:
+        """The configured region clip (infinite when none)."""
+        ss = self.surface
+        if len(ss.region_min) == 3 and len(ss.region_max) == 3:
+            return np.asarray(ss.region_min, float), np.asarray(ss.region_max, float)
+        return np.full(3, -np.inf), np.full(3, np.inf)
+
+    def _tile_grid(self, key: tuple, s: float) -> Grid | None:
+        """The tile's core on the global lattice of spacing ``s``, within the configured clip
+        (the data's box needs no cut: nothing is evaluated beyond reach of its contacts)."""
+        lo, hi = self._layout.core(key)
+        clo, chi = self._clip()
+        lo, hi = np.maximum(lo, clo), np.minimum(hi, chi)
+        i0, i1 = np.ceil(lo / s - 1e-9), np.floor(hi / s + 1e-9)
+        if np.any(i1 - i0 < 1):
+            return None
+        return Grid.from_bounds(i0 * s, i1 * s, s)
+
+    def _tile_mesh(self, tile: _TileFit, s: float) -> SurfaceMesh:
         from scipy.spatial import cKDTree
 
-        pts = self.anchors()
-        if pts.shape[0] == 0:
-            return lambda q: np.zeros(len(q), dtype=bool)
+        grid = self._tile_grid(tile.key, s)
+        pts = self.anchors(tile.rows)
+        if grid is None or pts.shape[0] == 0:
+            return SurfaceMesh.empty(with_std=True)
         tree, r = cKDTree(pts), self.reach_m()
 
         def active(q: np.ndarray) -> np.ndarray:
             d, _ = tree.query(q, distance_upper_bound=r)
             return np.isfinite(d)
 
-        return active
-
-    def field(self) -> BandField:
-        """Narrow-band mean field on :meth:`mesh_grid`, evaluated only within :meth:`reach_m`
-        of a trusted contact."""
-        grid = self.mesh_grid()
-        with blas_threads(self.mapping.blas_threads):
-            return narrow_band_field(
-                self.fit_.predict,
-                grid,
-                coarse_factor=self.surface.coarse_factor,
-                band_voxels=self.surface.band_voxels,
-                active=self._active(),
-            )
+        band = narrow_band_field(
+            tile.est.predict, grid, coarse_factor=self.surface.coarse_factor,
+            band_voxels=self.surface.band_voxels, active=active,
+        )  # fmt: skip
+        mesh = extract_surface(band.values, band.grid)
+        if mesh.is_empty:
+            return SurfaceMesh.empty(with_std=True)
+        d, _ = tree.query(mesh.vertices)  # faces of the inactive fill's edge are not surface
+        mesh = _faces_subset(mesh, (d[mesh.faces] <= r - 2.0 * s).all(axis=1))
+        if mesh.is_empty:
+            return SurfaceMesh.empty(with_std=True)
+        _, std = tile.est.predict(mesh.vertices, return_std=True)
+        mesh = SurfaceMesh(mesh.vertices, mesh.faces, mesh.normals, std)
+        frac = self.surface.max_std_fraction
+        if frac < 1.0:
+            mesh = confident_part(mesh, frac * math.sqrt(self.signal_var_))
+        return mesh
 
     def mesh(self, with_std: bool = True) -> SurfaceMesh:
-        """Zero-level mesh with the predictive std at its vertices, confident faces only."""
+        """Zero-level mesh with the predictive std at its vertices, confident faces only:
+        the union of the tiles' meshes (a tile whose fit did not change keeps its mesh)."""
+        self._check()
+        if self.training_set_.X.shape[1] != 3:
+            raise InputDataError("mesh() needs 3D data; use predict on a 2D grid instead")
         t0 = time.perf_counter()
-        band = self.field()
-        t1 = time.perf_counter()
-        mesh = extract_surface(band.values, band.grid)
-        if not mesh.is_empty:  # faces of the inactive fill's edge are not the surface
-            from scipy.spatial import cKDTree
-
-            pts = self.anchors()
-            d, _ = cKDTree(pts).query(mesh.vertices)
-            keep = (d[mesh.faces] <= self.reach_m() - 2.0 * band.grid.spacing).all(axis=1)
-            mesh = _faces_subset(mesh, keep)
-        frac = self.surface.max_std_fraction
-        if (with_std or frac < 1.0) and not mesh.is_empty:
-            with blas_threads(self.mapping.blas_threads):
-                _, std = self.fit_.predict(mesh.vertices, return_std=True)
-            mesh = SurfaceMesh(mesh.vertices, mesh.faces, mesh.normals, std)
-            if frac < 1.0:
-                mesh = confident_part(mesh, frac * math.sqrt(self.signal_var_))
-        t2 = time.perf_counter()
-        self.last_field_ = band
-        self.timings_.update(field_s=t1 - t0, mesh_s=t2 - t1)
+        s = self.spacing_m()
+        with blas_threads(self.mapping.blas_threads):
+            for tile in self._tiles.values():
+                if tile.mesh is None or tile.mesh_key != s:
+                    tile.mesh = self._tile_mesh(tile, s)
+                    tile.mesh_key = s
+        parts = [t.mesh for t in self._tiles.values() if not t.mesh.is_empty]
+        mesh = _concatenate(parts)
+        self.timings_.update(mesh_s=time.perf_counter() - t0)
         return mesh
+
+
+@dataclasses.dataclass
+class _TileFit:
+    """One tile's fit: its rows (global indices), groups, input digest, estimator, mesh."""
+
+    key: tuple
+    rows: np.ndarray
+    gidx: np.ndarray
+    signature: str
+    est: EventMixtureGPIS
+    mesh: SurfaceMesh | None
+    mesh_key: float | None = None
+
+    def __post_init__(self) -> None:
+        self.local = {int(g): k for k, g in enumerate(self.gidx.tolist())}
+
+
+def _concatenate(parts: list[SurfaceMesh]) -> SurfaceMesh:
+    if not parts:
+        return SurfaceMesh.empty(with_std=True)
+    if len(parts) == 1:
+        return parts[0]
+    offs = np.cumsum([0] + [p.vertices.shape[0] for p in parts[:-1]])
+    return SurfaceMesh(
+        np.concatenate([p.vertices for p in parts]),
+        np.concatenate([p.faces + o for p, o in zip(parts, offs, strict=True)]),
+        np.concatenate([p.normals for p in parts]),
+        np.concatenate([p.std for p in parts]),
+    )
 
 
 def _faces_subset(mesh: SurfaceMesh, keep: np.ndarray) -> SurfaceMesh:

@@ -52,6 +52,10 @@ class MappingSettings:
         the tolerance (mixture).
     flag_tol : float
         The mixture's EM stops when no event's posterior moves by more than this.
+    tile_m : float
+        Edge of the cubic tiles the map is fitted in (mixture; ``mapping/tiles.py``): each is
+        fitted on its rows plus a halo of three length scales, and only tiles whose data changed
+        are refitted.
     tangent_slope_noise : float
         Noise (label units per metre) of each event's two tangent-plane rows: the potential's
         derivative along the contact's tangents is 0, so a surface goes on flat around a touch
@@ -194,6 +198,7 @@ class MappingSettings:
     sweep_tolerance_m: float = 0.03
     flag_tol: float = 1e-3
     tangent_slope_noise: float = 2.0
+    tile_m: float = 2.0
     plane_reach_m: float = 0.0
     plane_noise_per_m: float = 0.5
     model: Literal["robust", "gpis"] = "robust"
