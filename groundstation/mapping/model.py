@@ -190,7 +190,7 @@ class SurfaceModel:
 
     def _estimator(self, learn: bool, warm: bool) -> EventMixtureGPIS:
         ms = self.mapping
-        ell, sf2 = self._theta or (max(ms.lengthscale, ms.lengthscale_min), ms.signal_var)
+        ell, sf2 = self._theta
         return EventMixtureGPIS(
             lengthscale=ell,
             signal_var=sf2,
@@ -229,8 +229,11 @@ class SurfaceModel:
         """Step 4: the event-mixture EM, tile by tile (``mapping/tiles.py``): only tiles whose
         rows, priors or decisions changed are refitted. Returns the posterior P(false) of every
         group (from the tile holding its contacts' centroid)."""
-        layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * (self._theta or (0.25,))[0]))
         warm = self._theta is not None
+        if self._theta is None:
+            ms = self.mapping
+            self._theta = self.bounds.clip(max(ms.lengthscale, ms.lengthscale_min), ms.signal_var)
+        layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * self._theta[0]))
         if learn:  # on the tile with the most rows: theta is shared by every tile
             keys = layout.keys(ts.X[ts.groups.row_group >= 0])
             uniq, counts = np.unique(keys, axis=0, return_counts=True)

@@ -42,7 +42,9 @@ class MappingSettings:
         Prior probability that a contact event is false when the detector gave no ``p_false``
         (mixture).
     burst_gap_s, burst_radius_m : float
-        Events closer than these in time and space form a burst, tested as one (mixture).
+        Events within ``burst_radius_m`` of a burst's first event, each at most ``burst_gap_s``
+        after the previous one, form a burst, tested as one (mixture): about the vehicle's size,
+        where a gust keeps pushing it while it holds position.
     sweep_llr : float
         Evidence (nats) that an event is false when its contact lies inside the vehicle's body at
         a free-space sample away from it: log(1 / 0.01), a true contact being there only through
@@ -192,7 +194,7 @@ class MappingSettings:
     free_voxel_m: float = 0.1
     prior_false: float = 0.1
     burst_gap_s: float = 3.0
-    burst_radius_m: float = 0.5
+    burst_radius_m: float = 0.3
     sweep_llr: float = 4.6
     sweep_exclude_s: float = 0.5
     sweep_tolerance_m: float = 0.03

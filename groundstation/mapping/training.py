@@ -18,9 +18,9 @@
 - **Groups.** The rows of one contact event form a group (contacts without an event id are
   grouped into runs no more than ``event_gap_s`` apart in time). Its prior ``P(false)`` is the
   detector's ``p_false`` (mean over its rows) where known, else ``prior_false``.
-- **Bursts.** Events closer than ``burst_gap_s`` in time and ``burst_radius_m`` in space are
-  chained into one burst, left out together when the mixture tests them (a gust that keeps
-  pushing at one spot makes many consistent 'contacts').
+- **Bursts.** Events within ``burst_radius_m`` of a burst's first event, each at most
+  ``burst_gap_s`` after the previous one, form one burst, left out together when the mixture
+  tests them (a gust that keeps pushing at one spot makes many consistent 'contacts').
 - **Swept volume.** The vehicle's body cannot have passed through a surface: a contact point
   that lies inside the body (``body_radius_m`` around a free-space centre, ``body_half_height_m``
   above and below) at a free-space sample taken at least ``sweep_exclude_s`` away from the event
@@ -51,7 +51,7 @@ class TrainingPolicy:
     free_voxel_m: float = 0.1
     prior_false: float = 0.1
     burst_gap_s: float = 3.0
-    burst_radius_m: float = 0.5
+    burst_radius_m: float = 0.3
     body_radius_m: float = 0.2
     body_half_height_m: float = 0.05
     sweep_exclude_s: float = 0.5
@@ -253,28 +253,32 @@ def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> Tr
 def _bursts(
     t_span: list[tuple[int, int]], centre: list[np.ndarray], p: TrainingPolicy
 ) -> np.ndarray:
-    """Chain groups closer than ``burst_gap_s`` and ``burst_radius_m`` into bursts."""
+    """Bursts: in time order, an event joins the burst whose first event lies within
+    ``burst_radius_m`` of it and whose last event ended at most ``burst_gap_s`` before it; else
+    it starts one. (Chaining neighbours transitively would fuse a whole survey of quick touches
+    into one burst, left out as a whole and judged against free space alone.)"""
     G = len(t_span)
-    parent = list(range(G))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    order = sorted(range(G), key=lambda g: t_span[g][0])
+    out = np.full(G, -1, dtype=np.int64)
     gap = int(p.burst_gap_s * 1e9)
-    for a_i, a in enumerate(order):
-        for b in order[a_i + 1 :]:
-            if t_span[b][0] - t_span[a][1] > gap:
-                break
-            ca, cb = centre[a], centre[b]
-            if np.isfinite(ca).all() and np.isfinite(cb).all():
-                if float(np.linalg.norm(ca - cb)) <= p.burst_radius_m:
-                    parent[find(b)] = find(a)
-    roots = {r: k for k, r in enumerate(sorted({find(g) for g in range(G)}))}
-    return np.array([roots[find(g)] for g in range(G)], dtype=np.int64)
+    open_: list[list] = []  # [seed centre, last end, burst id]
+    for g in sorted(range(G), key=lambda k: t_span[k][0]):
+        c = centre[g]
+        best = None
+        if np.isfinite(c).all():
+            for entry in open_:
+                seed, last, _ = entry
+                if (
+                    t_span[g][0] - last <= gap
+                    and float(np.linalg.norm(c - seed)) <= p.burst_radius_m
+                ):
+                    best = entry
+                    break
+        if best is None:
+            best = [c, t_span[g][1], len(open_)]
+            open_.append(best)
+        best[1] = max(best[1], t_span[g][1])
+        out[g] = best[2]
+    return out
 
 
 def _swept(

@@ -1,4 +1,4 @@
-"""SurfaceModel (model.py): merge -> fit (exact or sparse) -> narrow-band field -> mesh."""
+"""LegacySurfaceModel (legacy.py): merge -> fit (exact or sparse) -> narrow-band field -> mesh."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import scipy.linalg
 from threadpoolctl import threadpool_limits
 
 from groundstation.errors import ConvergenceWarning, NotFittedError
-from groundstation.mapping.model import SurfaceModel
+from groundstation.mapping.legacy import LegacySurfaceModel as SurfaceModel
 from groundstation.mapping.settings import MappingSettings, SurfaceSettings
 
 assert scipy.linalg

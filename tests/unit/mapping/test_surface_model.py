@@ -1,0 +1,116 @@
+"""Map engine v2 (model.py): rows -> tiled event-mixture fits -> region from the data -> mesh."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from groundstation.contact.detector import Observation
+from groundstation.errors import NotFittedError
+from groundstation.mapping.model import SurfaceModel
+from groundstation.mapping.settings import MappingSettings, SurfaceSettings
+
+S = 1_000_000_000
+
+
+def box_flight(offset=(0.0, 0.0, 0.0), seed=0, gusts=((0.9, 0.5, 1.0),)):
+    """Touches on the +x face of a box at x = 0 (y, z in 0..1), one event each, free points on
+    approach paths in front of it, and false 'contacts' (gusts) in that free space."""
+    rng = np.random.default_rng(seed)
+    off = np.asarray(offset, float)
+    n = np.array([1.0, 0.0, 0.0])
+    out, i, t = [], 0, 0.0
+    for e in range(25):
+        c = np.array([0.0, *rng.uniform(0.05, 0.95, 2)]) + off
+        for k in range(6):  # the approach path: free points 0.1 m apart
+            out.append(Observation(i, int(t * S), c + (0.8 - 0.1 * k) * n, 1.0, np.zeros(3), -1,
+                                   0.0))  # fmt: skip
+            i, t = i + 1, t + 0.1
+        out.append(Observation(i, int(t * S), c, 0.0, n, e, 3.0, p_false=0.05, sigma_m=0.005))
+        out.append(Observation(i + 1, int(t * S), c - 0.1 * n, -1.0, n, e, 3.0, p_false=0.05,
+                               sigma_m=0.005))  # fmt: skip
+        i, t = i + 2, t + 2.0
+    for k, g in enumerate(gusts):
+        c = np.asarray(g, float) + off
+        e = 100 + k
+        out.append(Observation(i, int(t * S), c, 0.0, n, e, 2.0, p_false=0.6, sigma_m=0.005))
+        out.append(Observation(i + 1, int(t * S), c - 0.1 * n, -1.0, n, e, 2.0, p_false=0.6,
+                               sigma_m=0.005))  # fmt: skip
+        i, t = i + 2, t + 5.0
+    return out
+
+
+def test_unfitted_model_says_so():
+    with pytest.raises(NotFittedError):
+        SurfaceModel().mesh()
+
+
+def test_a_box_face_away_from_the_origin_is_meshed_and_the_gust_in_its_path_flagged():
+    off = (-37.3, 12.6, 0.5)  # far from the origin and negative: the region follows the data
+    model = SurfaceModel(MappingSettings(), SurfaceSettings())
+    summary = model.fit(box_flight(off))
+    post = model.event_posteriors()
+    assert post[100] > 0.5 and max(post[e] for e in range(25)) < 0.5
+    assert summary.n_flagged == 1
+    mesh = model.mesh()
+    assert not mesh.is_empty
+    v = mesh.vertices - np.asarray(off)
+    face = (v[:, 1] > 0.2) & (v[:, 1] < 0.8) & (v[:, 2] > 0.2) & (v[:, 2] < 0.8)
+    assert np.median(np.abs(v[face, 0])) < 0.03  # the face x = 0 where it was touched
+    assert not np.any((np.abs(v[:, 0] - 0.9) < 0.1) & (np.abs(v[:, 1] - 0.5) < 0.1))  # no blob
+    reg = model.region()
+    assert np.all(reg.lo < np.asarray(off)) and not reg.clipped
+
+
+def test_a_configured_region_only_clips_and_is_reported():
+    clip = SurfaceSettings(region_min=(0.0, 0.0, 0.0), region_max=(8.0, 4.0, 2.0))
+    model = SurfaceModel(MappingSettings(), clip)
+    model.fit(box_flight((-1.0, 0.0, 0.0)))
+    assert model.region().clipped
+    mesh = model.mesh()
+    assert mesh.is_empty or mesh.vertices[:, 0].min() >= -1e-9
+
+
+def test_only_tiles_whose_data_changed_are_refitted():
+    obs = box_flight() + box_flight((6.0, 0.0, 0.0), seed=1, gusts=())
+    obs = [
+        Observation(k, o.t_ns, o.position, o.label, o.normal,
+                    o.event_id + (1000 if o.position[0] > 3 else 0), o.accel_g,
+                    p_false=o.p_false, sigma_m=o.sigma_m)
+        for k, o in enumerate(obs)
+    ]  # fmt: skip
+    model = SurfaceModel(MappingSettings(theta_refit_growth=10.0), SurfaceSettings())
+    model.fit(obs)
+    model.mesh()
+    assert model.timings_["tiles"] >= 2
+    first = {k: t.est for k, t in model._tiles.items()}
+    # a new touch near the second box only
+    n = np.array([1.0, 0.0, 0.0])
+    c = np.array([6.0, 0.5, 0.5])
+    extra = [
+        Observation(5000, 10**12, c, 0.0, n, 5000, 3.0, p_false=0.05, sigma_m=0.005),
+        Observation(5001, 10**12, c - 0.1 * n, -1.0, n, 5000, 3.0, p_false=0.05, sigma_m=0.005),
+    ]
+    model.fit(obs + extra)
+    kept = [k for k, t in model._tiles.items() if first.get(k) is t.est]
+    assert kept and len(kept) < len(model._tiles)
+    assert all(k[0] < 2 for k in kept)  # the untouched tiles are the first box's
+    assert not model.mesh().is_empty
+
+
+def test_tiles_agree_with_one_big_fit_inside_their_cores():
+    obs = box_flight()
+    tiled = SurfaceModel(MappingSettings(tile_m=0.6), SurfaceSettings())
+    whole = SurfaceModel(MappingSettings(tile_m=50.0), SurfaceSettings())
+    tiled.fit(obs)
+    whole.fit(obs)
+    assert tiled.lengthscale_ == pytest.approx(whole.lengthscale_, rel=0.3)
+    # at the touched face, away from tile borders, both predict the same surface
+    q = np.array([[0.0, 0.3, 0.3], [0.0, 0.3, 0.9], [0.05, 0.9, 0.3], [-0.05, 0.3, 0.9]])
+    # the same kernel for both: compare the tiling, not the kernel search
+    fixed = dict(optimize=False, lengthscale=tiled.lengthscale_, signal_var=tiled.signal_var_)
+    a = SurfaceModel(MappingSettings(tile_m=0.6, **fixed), SurfaceSettings())
+    b = SurfaceModel(MappingSettings(tile_m=50.0, **fixed), SurfaceSettings())
+    a.fit(obs)
+    b.fit(obs)
+    assert np.allclose(a.predict(q), b.predict(q), atol=0.05)
