@@ -59,6 +59,15 @@ class ObservationSet3D:
     covered_s : float
         Session time (s) when every reachable face patch had been touched once.
     name : str
+    event : (n,) int64 or None
+        Contact event of each contact and internal row (a stroke, one gust), -1 for external
+        rows; None when the generator has no events.
+    normals : (n, 3) float64 or None
+        The detector's outward normal of each contact and internal row (zeros for external).
+    cluster : (n,) bool or None
+        Rows of false contacts that belong to a gust cluster (several gusts at one spot).
+    touched : (k, 3) float64 or None
+        True contact points of the genuine touches (where the surface was touched).
     """
 
     X: np.ndarray
@@ -70,6 +79,10 @@ class ObservationSet3D:
     truth_samples: np.ndarray
     covered_s: float
     name: str
+    event: np.ndarray | None = None
+    normals: np.ndarray | None = None
+    cluster: np.ndarray | None = None
+    touched: np.ndarray | None = None
 
     @property
     def outlier(self) -> np.ndarray:
@@ -89,17 +102,40 @@ class ObservationSet3D:
         """Signed distance (m, < 0 inside) of (m, 3) points to the scene's structures."""
         return scene_sdf(self.scene, points)
 
+    def _rows(self, sel) -> ObservationSet3D:
+        def cut(a):
+            return None if a is None else a[sel]
+
+        return dataclasses.replace(
+            self, X=self.X[sel], y=self.y[sel], kind=self.kind[sel], ids=self.ids[sel],
+            t_ns=self.t_ns[sel], event=cut(self.event), normals=cut(self.normals),
+            cluster=cut(self.cluster),
+        )  # fmt: skip
+
     def upto(self, t_s: float) -> ObservationSet3D:
         """The observations emitted up to session time ``t_s`` seconds (a prefix)."""
         k = int(np.searchsorted(self.t_ns, int(t_s * 1e9), side="right"))
-        return dataclasses.replace(
-            self,
-            X=self.X[:k],
-            y=self.y[:k],
-            kind=self.kind[:k],
-            ids=self.ids[:k],
-            t_ns=self.t_ns[:k],
-        )
+        return self._rows(slice(0, k))
+
+    def clean(self) -> ObservationSet3D:
+        """The clean control: the same set without its false contacts and their internal
+        points (accuracy that comes from smoothing shows up as no gap to it)."""
+        return self._rows(self.kind <= EXTERNAL)
+
+    def observations(self, p_false: np.ndarray | None = None) -> list:
+        """The rows as detector :class:`~groundstation.contact.detector.Observation` records
+        (``p_false``: an optional (n,) prior per row; NaN: none)."""
+        from groundstation.contact.detector import Observation
+
+        ev = self.event if self.event is not None else np.where(self.y > 0, -1, self.ids)
+        nrm = self.normals if self.normals is not None else np.zeros_like(self.X)
+        pf = np.full(len(self.y), np.nan) if p_false is None else p_false
+        return [
+            Observation(int(i), int(t), x, float(y), n, int(e), 0.0, p_false=float(p))
+            for i, t, x, y, n, e, p in zip(
+                self.ids, self.t_ns, self.X, self.y, nrm, ev, pf, strict=True
+            )
+        ]
 
 
 # --------------------------------------------------------------------------- geometry
@@ -300,14 +336,26 @@ def paper3d(
     seed: int = 0,
     *,
     scene: Scene | str = "paper",
-    n_contacts: int = 1100,
+    n_contacts: int = 900,
     n_external: int = 450,
     false_rate: float = 0.02,
+    clusters: int = 3,
+    cluster_size: tuple[int, int] = (6, 10),
     stroke_len: int = 10,
-    noise: float = 0.015,
+    noise: float = 0.01,
     n_truth: int = 20000,
 ) -> ObservationSet3D:
-    """The paper-like 3D observation set (n ~ 2,700 with the defaults).
+    """The paper-like 3D observation set (n ~ 2,300 with the defaults), in time order.
+
+    The drone flies from patch to patch of the reachable faces and slides a short stroke on each
+    (``stroke_len`` contacts at 25 Hz at 0.25 m/s, one contact event per stroke, each contact
+    with its internal point and the detector's normal). External points are its positions in free
+    flight: half along the approach paths near the structure, half anywhere in the region. False
+    contacts: isolated gusts (``false_rate`` per genuine contact, one event each, at a drone
+    position in free space near the structure, with the drone's path through that position as
+    external points, as the detector emits them) and ``clusters`` gust clusters: 6-10 gusts
+    0.5 s apart pushing a hovering drone at one spot (one event each, a burst in time and space;
+    the hover position is an external point before and after).
 
     Parameters
     ----------
@@ -316,12 +364,15 @@ def paper3d(
     scene : Scene or name
         Structure (default the SITL ``paper`` scene: a box and a pillar in 8 x 4 x 2 m).
     n_contacts : int
-        Genuine contacts, in strokes of ``stroke_len`` at 25 Hz sliding at 0.25 m/s; each
-        contact also emits an internal point.
+        Genuine contacts.
     n_external : int
-        External (free-space) points: half near the structure, half uniform in the region.
+        External (free-space) points.
     false_rate : float
-        False-contact pairs per genuine contact (paper: 2 %).
+        Isolated false-contact pairs per genuine contact (paper: 2 %).
+    clusters : int
+        Gust clusters.
+    cluster_size : (int, int)
+        Gusts per cluster, inclusive range.
     stroke_len : int
         Contacts per stroke.
     noise : float
@@ -337,51 +388,88 @@ def paper3d(
     sc = _load(scene)
     rng = np.random.default_rng(np.random.SeedSequence([seed, 3]))
     centres, normals = reachable_patches(sc, 0.5)
-    pts, nrm = [], []
     n_strokes = math.ceil(n_contacts / stroke_len)
     order = np.concatenate(
         [rng.permutation(len(centres)) for _ in range(math.ceil(n_strokes / len(centres)))]
     )[:n_strokes]
-    for k in order:
+    rows: list[tuple] = []  # (t_s, X (k,3), kind, event, normals (k,3), cluster)
+    touched = []
+    t, event, prev = 0.0, 0, np.asarray(sc.start, dtype=np.float64)
+    n_near = n_external // 2
+    left = n_contacts
+    for s, k in enumerate(order):
         start = centres[k] + _jitter_in_plane(normals[k], rng, 0.25)
-        p, n = _stroke(sc, start, normals[k], stroke_len, 0.25, rng)
-        pts.append(p)
-        nrm.append(n)
-    true_pts = np.concatenate(pts)[:n_contacts]
-    true_nrm = np.concatenate(nrm)[:n_contacts]
-    xc, xin = _contact_rows(true_pts, true_nrm, rng, noise)
-    near = true_pts + (DRONE_RADIUS + 0.1) * true_nrm
-    ext = np.concatenate(
-        [
-            _free_points(sc, rng, n_external // 2, near=near),
-            _free_points(sc, rng, n_external - n_external // 2),
-        ]
-    )
+        p_true, n_true = _stroke(sc, start, normals[k], min(stroke_len, left), 0.25, rng)
+        left -= p_true.shape[0]
+        standoff = p_true[0] + (DRONE_RADIUS + 0.1) * n_true[0]
+        # the approach: free points along the path from the last standoff
+        m = n_near // n_strokes + (1 if s < n_near % n_strokes else 0)
+        if m:
+            frac = (np.arange(m) + 1.0) / (m + 1.0)
+            path = prev + frac[:, None] * (standoff - prev) + rng.normal(0.0, 0.1, (m, 3))
+            path = _push_out(sc, path)
+            rows.append((t + frac * 2.0, path, EXTERNAL, -1, np.zeros_like(path), False))
+        t += 2.0
+        xc, xin = _contact_rows(p_true, n_true, rng, noise)
+        n_est = _unit(xc - xin)
+        tt = t + np.arange(len(xc)) / CONTACT_HZ
+        rows.append((tt, xc, CONTACT, event, n_est, False))
+        rows.append((tt, xin, INTERNAL, event, n_est, False))
+        touched.append(p_true)
+        event += 1
+        t = tt[-1] + 1.0 / CONTACT_HZ
+        prev = p_true[-1] + (DRONE_RADIUS + 0.1) * n_true[-1]
+    t_end = t
+    near = np.concatenate(touched) + (DRONE_RADIUS + 0.1) * 0.0
+    uniform = _free_points(sc, rng, n_external - n_near)
+    rows.append((rng.uniform(0.0, t_end, len(uniform)), uniform, EXTERNAL, -1,
+                 np.zeros_like(uniform), False))  # fmt: skip
+    stand = np.concatenate([r[1] for r in rows if r[2] == EXTERNAL])
     n_false = int(rng.binomial(n_contacts, false_rate)) if false_rate > 0 else 0
-    fc, fi = [], []
     for c in _free_points(sc, rng, n_false, near=near):
-        a, b = _gust_rows(c, 1, rng)
-        fc.append(a)
-        fi.append(b)
-    rows = [(xc, CONTACT), (xin, INTERNAL), (ext, EXTERNAL)]
-    if n_false:
-        rows += [(np.concatenate(fc), FALSE_CONTACT), (np.concatenate(fi), FALSE_INTERNAL)]
-    X = np.concatenate([r[0] for r in rows])
-    kind = np.concatenate([np.full(len(r[0]), r[1], dtype=np.int8) for r in rows])
-    # Emission order: a random interleaving (the paper's set is a batch; times are nominal).
-    perm = rng.permutation(len(X))
-    X, kind = X[perm], kind[perm]
-    t_ns = (np.arange(len(X)) * (1e9 / CONTACT_HZ)).astype(np.int64)
+        fc, fi = _gust_rows(c, 1, rng)
+        tg = np.full(1, rng.uniform(0.0, t_end))
+        nn = _unit(fc - fi)
+        rows.append((tg, fc, FALSE_CONTACT, event, nn, False))
+        rows.append((tg, fi, FALSE_INTERNAL, event, nn, False))
+        # the drone flew through where the gust hit it: its path there is free space
+        path = _push_out(sc, c + np.linspace(-0.3, 0.3, 7)[:, None] * _unit(rng.standard_normal(3)))
+        rows.append((tg[0] + np.linspace(-0.6, 0.6, 7), path, EXTERNAL, -1,
+                     np.zeros_like(path), False))  # fmt: skip
+        event += 1
+    for _ in range(clusters):
+        size = int(rng.integers(cluster_size[0], cluster_size[1] + 1))
+        where = stand[rng.integers(0, len(stand))]  # the drone hovers where it flew
+        fc, fi = _gust_rows(where, size, rng)
+        tg = rng.uniform(0.0, t_end) + 0.5 * np.arange(size)
+        nn = _unit(fc - fi)
+        hover = where[None, :] + rng.normal(0.0, 0.02, (2, 3))  # the hover position, sampled
+        rows.append((tg[[0, -1]] + [-1.0, 1.0], hover, EXTERNAL, -1, np.zeros_like(hover), False))
+        for j in range(size):
+            rows.append((tg[j : j + 1], fc[j : j + 1], FALSE_CONTACT, event, nn[j : j + 1], True))
+            rows.append((tg[j : j + 1], fi[j : j + 1], FALSE_INTERNAL, event, nn[j : j + 1], True))
+            event += 1
+    t_s = np.concatenate([np.broadcast_to(r[0], (len(r[1]),)) for r in rows])
+    X = np.concatenate([r[1] for r in rows])
+    kind = np.concatenate([np.full(len(r[1]), r[2], dtype=np.int8) for r in rows])
+    ev = np.concatenate([np.full(len(r[1]), r[3], dtype=np.int64) for r in rows])
+    nrm = np.concatenate([r[4] for r in rows])
+    clu = np.concatenate([np.full(len(r[1]), r[5], dtype=bool) for r in rows])
+    o = np.argsort(t_s, kind="stable")
     return ObservationSet3D(
-        X=X,
-        y=_labels(kind),
-        kind=kind,
+        X=X[o],
+        y=_labels(kind[o]),
+        kind=kind[o],
         ids=np.arange(len(X), dtype=np.int64),
-        t_ns=t_ns,
+        t_ns=np.round(t_s[o] * 1e9).astype(np.int64),
         scene=sc,
         truth_samples=truth_samples(sc, rng, n_truth),
-        covered_s=float(t_ns[-1]) * 1e-9,
+        covered_s=float(t_end),
         name="paper3d",
+        event=ev[o],
+        normals=nrm[o],
+        cluster=clu[o],
+        touched=np.concatenate(touched),
     )
 
 

@@ -340,6 +340,8 @@ class EventMixtureGPIS:
         resid = y - self.prior_mean
         resid = np.where(is_val, resid, y)  # a derivative's prior mean is 0
         converged = False
+        cycled = False
+        seen: set[bytes] = set()
         fac: BFactor | None = None
         llr = np.zeros_like(r)
         it = 0
@@ -353,9 +355,18 @@ class EventMixtureGPIS:
             logit = np.log(prior) - np.log1p(-prior) + llr + groups.extra_llr
             r_new = 1.0 / (1.0 + np.exp(-np.clip(logit, -50.0, 50.0)))
             delta = float(np.max(np.abs(r_new - r))) if r.size else 0.0
+            same = bool(np.array_equal(r_new > 0.5, r > 0.5))
+            seen.add((r > 0.5).tobytes())
             r = r_new
-            if delta < self.tol:
+            # the fit depends on the decisions only: once none flips and the posteriors
+            # settle, another iteration changes nothing the map shows
+            if delta < self.tol or (same and delta < 10.0 * self.tol):
                 converged = True
+                break
+            if not same and (r > 0.5).tobytes() in seen:
+                # decisions came back to an earlier set: a cycle between groups that explain
+                # each other away; stop with the posteriors of this iteration
+                cycled = True
                 break
         # the posterior of the final decisions
         w = self._precisions(s2, rg, in_group, r)
@@ -381,7 +392,7 @@ class EventMixtureGPIS:
             n_train=n,
             n_groups=int(r.size),
             n_flagged=int(np.sum(r > 0.5)),
-            reasons=() if converged else ("not_converged",),
+            reasons=() if converged else (("decisions_cycle",) if cycled else ("not_converged",)),
         )
         return self
 

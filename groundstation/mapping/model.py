@@ -198,7 +198,7 @@ class SurfaceModel:
             outlier_var=ms.outlier_var,
             prior_mean=ms.prior_mean,
             learn_kernel=learn,
-            max_iter=ms.refit_max_iter if warm else ms.max_iter,
+            max_iter=ms.refit_max_iter if warm else ms.mixture_max_iter,
             tol=ms.flag_tol,
             chunk_mb=self.surface.chunk_mb,
         )

@@ -52,8 +52,11 @@ class MappingSettings:
     sweep_exclude_s, sweep_tolerance_m : float
         Free-space samples this close in time to the event do not count; the body is shrunk by
         the tolerance (mixture).
+    mixture_max_iter : int
+        Iterations of a cold mixture fit at most (warm refits: ``refit_max_iter``).
     flag_tol : float
-        The mixture's EM stops when no event's posterior moves by more than this.
+        The mixture's EM stops when no event's posterior moves by more than this (or by more
+        than ten times this while no decision flips).
     tile_m : float
         Edge of the cubic tiles the map is fitted in (mixture; ``mapping/tiles.py``): each is
         fitted on its rows plus a halo of three length scales, and only tiles whose data changed
@@ -198,7 +201,8 @@ class MappingSettings:
     sweep_llr: float = 4.6
     sweep_exclude_s: float = 0.5
     sweep_tolerance_m: float = 0.03
-    flag_tol: float = 1e-3
+    flag_tol: float = 5e-3
+    mixture_max_iter: int = 12
     tangent_slope_noise: float = 2.0
     tile_m: float = 2.0
     plane_reach_m: float = 0.0
@@ -309,6 +313,7 @@ class MappingSettings:
             ("n_inducing", 2),
             ("pilot_size", 2),
             ("refit_max_iter", 1),
+            ("mixture_max_iter", 1),
             ("blas_threads", 0),
             ("merge_min_raw", 0),
         ):
