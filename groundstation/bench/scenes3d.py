@@ -420,7 +420,7 @@ def paper3d(
         t = tt[-1] + 1.0 / CONTACT_HZ
         prev = p_true[-1] + (DRONE_RADIUS + 0.1) * n_true[-1]
     t_end = t
-    near = np.concatenate(touched) + (DRONE_RADIUS + 0.1) * 0.0
+    near = np.concatenate(touched)
     uniform = _free_points(sc, rng, n_external - n_near)
     rows.append((rng.uniform(0.0, t_end, len(uniform)), uniform, EXTERNAL, -1,
                  np.zeros_like(uniform), False))  # fmt: skip
