@@ -287,7 +287,6 @@ def label_run(run: Any, engine: str) -> tuple[list[LabelledEvent], list[TruthIte
     name = Path(run.log_path).stem
     truth = run.truth or {}
     contacts = truth.get("contacts", [])
-    offset = int(truth.get("clock", {}).get("station_offset_ns", 0))
     scene = parse_scene(truth["scene"]) if truth.get("scene") else None
     firsts = {}
     for o in run.observations:
@@ -337,7 +336,6 @@ def label_run(run: Any, engine: str) -> tuple[list[LabelledEvent], list[TruthIte
         )
         for k, c in enumerate(contacts)
     ]  # fmt: skip
-    del offset
     return events, items
 
 
