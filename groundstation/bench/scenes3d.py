@@ -525,8 +525,9 @@ def session40(
     rng = np.random.default_rng(np.random.SeedSequence([seed, 40]))
     centres, normals = reachable_patches(sc, 0.5)
     first_pass = list(rng.permutation(len(centres)))
-    chunks: list[tuple[np.ndarray, int, np.ndarray]] = []  # (X, kind, t_s)
-    t, covered_s, ext_next = 0.0, math.nan, 0.0
+    chunks: list[tuple] = []  # (X, kind, t_s, event, normals)
+    touched = []
+    t, covered_s, ext_next, event = 0.0, math.nan, 0.0, 0
     prev = np.asarray(sc.start, dtype=np.float64)
     mean_stroke = 4.0
     mean_free = mean_stroke * (1.0 - contact_fraction) / contact_fraction
@@ -541,7 +542,7 @@ def session40(
             frac = ((t_ext - t) / free_s)[:, None]
             path = prev + frac * (target - prev) + rng.normal(0.0, 0.15, (t_ext.size, 3))
             path = _push_out(sc, path)
-            chunks.append((path, EXTERNAL, t_ext))
+            chunks.append((path, EXTERNAL, t_ext, -1, np.zeros_like(path)))
             ext_next = t_ext[-1] + 1.0 / EXTERNAL_HZ
         n_gusts = rng.poisson(gusts_per_min * free_s / 60.0)
         for _ in range(n_gusts):
@@ -550,18 +551,23 @@ def session40(
             where = _push_out(sc, (prev + rng.uniform(0, 1) * (target - prev))[None])[0]
             fc, fi = _gust_rows(where, count, rng)
             tt = tg + np.arange(count) / CONTACT_HZ
-            chunks.append((fc, FALSE_CONTACT, tt))
-            chunks.append((fi, FALSE_INTERNAL, tt))
+            nn = _unit(fc - fi)
+            chunks.append((fc, FALSE_CONTACT, tt, event, nn))
+            chunks.append((fi, FALSE_INTERNAL, tt, event, nn))
+            event += 1
         t += free_s
-        # Slide along the face.
+        # Slide along the face: one contact event per stroke.
         dur = rng.uniform(2.0, 6.0)
         n_pts = max(2, int(dur * CONTACT_HZ))
         start = centres[k] + _jitter_in_plane(normals[k], rng, 0.2)
         p, n = _stroke(sc, start, normals[k], n_pts, rng.uniform(0.1, 0.3), rng)
         xc, xin = _contact_rows(p, n, rng, noise)
         tt = t + np.arange(n_pts) / CONTACT_HZ
-        chunks.append((xc, CONTACT, tt))
-        chunks.append((xin, INTERNAL, tt))
+        n_est = _unit(xc - xin)
+        chunks.append((xc, CONTACT, tt, event, n_est))
+        chunks.append((xin, INTERNAL, tt, event, n_est))
+        touched.append(p[tt < duration_s])
+        event += 1
         prev = p[-1] + (DRONE_RADIUS + 0.1) * n[-1]
         t += n_pts / CONTACT_HZ
         if not first_pass and math.isnan(covered_s):
@@ -569,6 +575,8 @@ def session40(
     X = np.concatenate([c[0] for c in chunks])
     kind = np.concatenate([np.full(len(c[0]), c[1], dtype=np.int8) for c in chunks])
     t_s = np.concatenate([c[2] for c in chunks])
+    ev = np.concatenate([np.full(len(c[0]), c[3], dtype=np.int64) for c in chunks])
+    nrm = np.concatenate([c[4] for c in chunks])
     keep = t_s < duration_s
     order = np.argsort(t_s[keep], kind="stable")
     X, kind, t_s = X[keep][order], kind[keep][order], t_s[keep][order]
@@ -582,6 +590,10 @@ def session40(
         truth_samples=truth_samples(sc, rng, n_truth),
         covered_s=float(duration_s if math.isnan(covered_s) else covered_s),
         name="session40",
+        event=ev[keep][order],
+        normals=nrm[keep][order],
+        cluster=np.zeros(len(X), dtype=bool),
+        touched=np.concatenate(touched),
     )
 
 

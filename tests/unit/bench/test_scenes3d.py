@@ -37,10 +37,11 @@ def test_vectorised_sdf_equals_the_scene_reference():
 
 def test_paper3d_size_labels_and_geometry(paper):
     n = len(paper.y)
-    assert 2600 <= n <= 2800
+    assert 2300 <= n <= 2700  # ~2,300 plus the external points of the gusts' paths
     c = paper.counts()
-    assert c["contact"] == c["internal"] == 1100 and c["external"] == 450
-    assert 5 <= c["false_contact"] == c["false_internal"] <= 45  # 2 % of 1100 contacts
+    assert c["contact"] == c["internal"] == 900 and 450 <= c["external"] <= 800
+    # 2 % of 900 isolated gusts plus 3 clusters of 6-10: 18 + 18..30, give or take the draw
+    assert 25 <= c["false_contact"] == c["false_internal"] <= 70
     expect = np.select(
         [paper.kind == EXTERNAL, np.isin(paper.kind, (INTERNAL, FALSE_INTERNAL))], [1.0, -1.0], 0.0
     )
@@ -52,7 +53,7 @@ def test_paper3d_size_labels_and_geometry(paper):
     assert d[paper.kind == EXTERNAL].min() >= scenes3d.DRONE_RADIUS  # free space
     assert d[paper.kind == FALSE_CONTACT].min() > 0.05  # gusts happen in free space
     np.testing.assert_array_equal(paper.ids, np.arange(n))
-    assert np.all(np.diff(paper.t_ns) > 0)
+    assert np.all(np.diff(paper.t_ns) >= 0)  # a contact and its internal point share a time
 
 
 def test_truth_samples_lie_on_reachable_faces_only(paper):
