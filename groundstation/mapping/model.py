@@ -90,6 +90,8 @@ def training_policy(
         sweep_exclude_s=mapping.sweep_exclude_s,
         sweep_tolerance_m=mapping.sweep_tolerance_m,
         sweep_llr=mapping.sweep_llr,
+        burst_events_min=mapping.burst_events_min,
+        burst_llr=mapping.burst_llr,
         tangent_slope_noise=mapping.tangent_slope_noise,
         plane_reach_m=mapping.plane_reach_m,
         plane_noise_per_m=mapping.plane_noise_per_m,

@@ -45,6 +45,10 @@ class MappingSettings:
         Events within ``burst_radius_m`` of a burst's first event, each at most ``burst_gap_s``
         after the previous one, form a burst, tested as one (mixture): about the vehicle's size,
         where a gust keeps pushing it while it holds position.
+    burst_events_min, burst_llr : int, float
+        A burst of at least ``burst_events_min`` events adds ``burst_llr`` nats of evidence that
+        its events are false: real surface is touched on separate visits, a gust cluster in one
+        window (``mapping/training.py``; 0 turns it off).
     sweep_llr : float
         Evidence (nats) that an event is false when its contact lies inside the vehicle's body at
         a free-space sample away from it: log(1 / 0.01), a true contact being there only through
@@ -198,6 +202,8 @@ class MappingSettings:
     prior_false: float = 0.1
     burst_gap_s: float = 3.0
     burst_radius_m: float = 0.3
+    burst_events_min: int = 3
+    burst_llr: float = 3.0
     sweep_llr: float = 4.6
     sweep_exclude_s: float = 0.5
     sweep_tolerance_m: float = 0.03
@@ -281,7 +287,13 @@ class MappingSettings:
             )
         if not 0 < self.prior_false < 1:
             raise ValueError(f"mapping.prior_false must be in (0, 1), got {self.prior_false!r}")
-        for name in ("burst_gap_s", "sweep_llr", "sweep_exclude_s", "sweep_tolerance_m"):
+        for name in (
+            "burst_gap_s",
+            "sweep_llr",
+            "sweep_exclude_s",
+            "sweep_tolerance_m",
+            "burst_llr",
+        ):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"mapping.{name} must be >= 0, got {getattr(self, name)!r}")
         if not -1.0 <= self.inside_value < 0.0:
@@ -314,6 +326,7 @@ class MappingSettings:
             ("pilot_size", 2),
             ("refit_max_iter", 1),
             ("mixture_max_iter", 1),
+            ("burst_events_min", 2),
             ("blas_threads", 0),
             ("merge_min_raw", 0),
         ):
