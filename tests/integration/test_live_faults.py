@@ -15,7 +15,10 @@ is measured and printed, asserted as "within 3 lines"):
 5. the link process stalls 4 s (SIGSTOP): the SITL's pty overflows and drops whole MAVLink
    frames, which the link counts from the MAVLink sequence numbers: ``LINK LOSS``;
 6. the active recorder stalls 3 s: ``REC BEHIND``;
-7. ``live`` is SIGKILLed: no process of the session is left 2 s later.
+7. ``live`` stops: its summary lists every condition shown, and it exits 1 (frames were lost).
+
+Another session is SIGKILLed: no process of it (workers, warm spares, the mapper's fitting
+child) is left 2 s later.
 
 A second session without a vehicle checks the missing-device cases: ``LINK NO DEVICE``,
 ``MOCAP FAILED``, the pilot's failsafe, and that ``view --session <typo>`` fails fast.
@@ -25,6 +28,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import time
 import warnings
@@ -111,17 +115,16 @@ def test_faults_in_a_live_session_are_shown_and_lose_nothing(tmp_path):
         delays["REC BEHIND"] = run.shown(r"REC BEHIND", n)
         run.wait_lines(len(run.lines()) + 4)
 
-        before = session_processes(run.live.pid)
-        assert len(before) >= 6, before
-        os.kill(run.live.pid, signal.SIGKILL)
-        run.live.wait(10)
-        time.sleep(2.0)
-        left = session_processes(run.live.pid)
     finally:
-        finish(run)
+        rc = finish(run)
     print(f"\nstatus-line delays (lines after the fault): {delays}")
-    assert left == {}, f"workers left 2 s after SIGKILL of live: {left}"
     rec_path = tmp_path / "live.mcap"
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert rc == 1, "MAVLink frames were lost: the exit code must say so"
+    assert any("MAVLink frames lost" in d for d in summary["data_loss"]), summary["data_loss"]
+    kinds = {e["kind"] for e in summary["events"]}
+    assert {"restarted", "no", "link_loss", "link_silent", "rec_behind"} <= kinds, kinds
+    assert summary["restarts"]["detector"] == 1 and summary["restarts"]["mapper"] == 1
 
     # 1. the detector resumed where it stood: every output once, numbering without a hole,
     # nothing reported lost (the exact comparison with the core is test_detector_catchup.py:
@@ -160,6 +163,32 @@ def test_faults_in_a_live_session_are_shown_and_lose_nothing(tmp_path):
             assert len(rec.segments) >= 3  # rotation every 20 s and the takeover
 
 
+def test_sigkill_of_live_leaves_no_worker_after_two_seconds(tmp_path):
+    """Workers, recorders, warm spares and the fitting child all die with ``live``."""
+    root = private_root()
+    live = start(
+        ["live", "--link", "serial:///dev/gs-no-such-radio", "--record", str(tmp_path / "r.mcap"),
+         "--no-viewer", "--session-root", root],
+        tmp_path / "live.out", tmp_path / "live.err",
+    )  # fmt: skip
+    try:
+        # every worker up and its warm spare started (3 s after it)
+        wait_for(lambda: len(status_lines(tmp_path / "live.out")) >= 6, 90, "6 status lines")
+        procs = session_processes(live.pid)
+        kinds = " ".join(procs.values())
+        assert "runtime.spare" in kinds and "multiprocessing" in kinds, procs
+        assert len(procs) >= 10, procs
+        os.kill(live.pid, signal.SIGKILL)
+        live.wait(10)
+        time.sleep(2.0)
+        left = session_processes(live.pid)
+    finally:
+        stop(live)
+        shutil.rmtree(root, ignore_errors=True)
+    assert left == {}, f"left 2 s after SIGKILL of live: {left}"
+    print(f"\n{len(procs)} processes of the session; 0 left 2 s after SIGKILL of live")
+
+
 def test_missing_devices_are_shown_and_view_of_a_typo_fails_fast(tmp_path):
     """No vehicle, a mocap host that does not resolve, no joystick: every one in upper case;
     nothing restarts in a loop; ``view --session`` of a typo exits at once with a hint."""
@@ -193,5 +222,5 @@ def test_missing_devices_are_shown_and_view_of_a_typo_fails_fast(tmp_path):
     assert summary["restarts"].get("link", 0) == 0 and summary["restarts"].get("mocap", 0) == 0
     kinds = {e["kind"] for e in summary["events"]}
     assert {"link_device", "mocap_failed", "no"} <= kinds, kinds
-    assert rc == 0 or rc == 1
+    assert rc == 0 and summary["data_loss"] == [], summary["data_loss"]  # nothing was there
     print(f"\nview --session typo exited in {view_s:.2f} s; first line: {lines[0]}")

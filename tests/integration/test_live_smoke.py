@@ -14,11 +14,12 @@ from pathlib import Path
 
 import pytest
 
-from groundstation.acquisition.reader import open_recording
+from groundstation.acquisition.segments import open_session as open_recording
 from groundstation.cli.live import DETECTOR_MODULE, MAPPER_MODULE, _available
 from tests.integration.test_pilot_sitl import free_udp_port, start, stop, wait_for
 
-LIVE_S = 15  # status lines (~seconds) to wait for before SIGINT
+LIVE_S = 24  # status lines (~seconds) to wait for before SIGINT (start-up included)
+STEADY = 8  # lines checked once the streams flow
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -88,7 +89,11 @@ def test_live_session_against_the_sitl_records_everything_with_zero_gaps(tmp_pat
     )
     assert rc == 0, err[-3000:]
     assert len(lines) >= LIVE_S
-    steady = lines[3:LIVE_S]  # after start-up: every line shows ~200 Hz streams and no gap
+    # after start-up (the SITL waits for the station, workers start): every line shows ~200 Hz
+    # streams and no gap
+    flowing = [k for k, ln in enumerate(lines) if "rec " in ln and "imu   0.0" not in ln]
+    steady = lines[flowing[0] + 1 : flowing[0] + 1 + STEADY]
+    assert len(steady) == STEADY, lines
     assert all("gaps 0/0 rec" in ln for ln in steady), steady
     imu = [float(ln.split("imu", 1)[1].split("Hz")[0]) for ln in steady]
     assert sorted(imu)[len(imu) // 2] > 150, imu
@@ -99,7 +104,7 @@ def test_live_session_against_the_sitl_records_everything_with_zero_gaps(tmp_pat
     assert summary["recording"]["complete"] is True
     assert summary["gaps_monitor"] == 0 and summary["gaps_recorder"] == 0
     for topic in ("samples.imu", "samples.attitude", "samples.pose"):
-        assert counts[topic] > 200 * (LIVE_S - 8), (topic, counts[topic])
+        assert counts[topic] > 200 * (STEADY - 2), (topic, counts[topic])
         assert counts[topic] == summary["counts"][topic], topic  # the recorder missed nothing
     assert counts["raw.mavlink"] > 0 and counts["raw.natnet"] == counts["samples.pose"]
     if _available(DETECTOR_MODULE) and _available(MAPPER_MODULE):
@@ -110,10 +115,12 @@ def test_live_session_against_the_sitl_records_everything_with_zero_gaps(tmp_pat
 
 def _pid(err_path: Path, name: str, nth: int = 0) -> int | None:
     """The pid of the ``nth`` start of worker ``name`` (``started NAME (pid N)`` on stderr)."""
+    import re
+
     pids = [
-        int(ln.rsplit("pid ", 1)[1].rstrip(")"))
+        int(m.group(1))
         for ln in err_path.read_text().splitlines()
-        if ln.startswith(f"started {name} (pid ")
+        if (m := re.match(rf"started {name} \(pid (\d+)", ln))
     ]
     return pids[nth] if len(pids) > nth else None
 
