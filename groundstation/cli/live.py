@@ -52,6 +52,9 @@ from groundstation.runtime.sources import source_worker
 from groundstation.runtime.status import StatusBoard
 from groundstation.runtime.supervisor import Supervisor, WorkerSpec, python_module
 
+#: Priority changes (nice) asked for: the acquisition and pilot path get more CPU share than the
+#: rest of a loaded machine, the recorders a little (a privilege; without it they say so).
+NICE = {"link": -5, "mocap": -5, "pilot": -5, "recorder": -3, "recorder2": -3}
 #: What the monitor subscribes to: the samples (so that it is one of the subscribers the sources
 #: wait for) and the state and events it shows; not the raw wire bytes, which only the recorders
 #: need (decoding them here would cost the terminal a third of its CPU for nothing).
@@ -131,16 +134,17 @@ def plan(args: argparse.Namespace, session_id: str) -> tuple[Session, list[Worke
             *[a for s in sources for a in ("--source", s)],
         )  # fmt: skip
         specs.append(WorkerSpec(name, argv, warm=True, max_restarts=20, group="recorders",
-                                stop_timeout_s=30.0))  # fmt: skip
+                                stop_timeout_s=30.0, nice=NICE[name]))  # fmt: skip
     for spec in (
         source_worker(args.link, session, "link", wait_sources),
         *([source_worker(args.mocap, session, "mocap", wait_sources)] if args.mocap else []),
     ):
-        specs.append(WorkerSpec(spec.name, spec.argv, warm=True, max_restarts=20))
+        specs.append(WorkerSpec(spec.name, spec.argv, warm=True, max_restarts=20,
+                                nice=NICE[spec.name]))  # fmt: skip
     if args.joystick:
         argv = python_module(PILOT_MODULE, *session.as_args(), "--device", args.joystick,
                              "--wait-subscribers", str(2 + rec))  # fmt: skip
-        specs.append(WorkerSpec("pilot", argv, warm=True, max_restarts=20))
+        specs.append(WorkerSpec("pilot", argv, warm=True, max_restarts=20, nice=NICE["pilot"]))
     if mapping:
         recording = ["--recording", str(args.record)] if args.record else []
         specs.append(

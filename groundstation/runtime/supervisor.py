@@ -32,7 +32,7 @@ import sys
 import time
 from collections.abc import Sequence
 
-from groundstation.runtime.worker import INCARNATION_ENV, NAME_ENV, PARENT_ENV
+from groundstation.runtime.worker import INCARNATION_ENV, NAME_ENV, PARENT_ENV, PRIORITY_ENV
 
 SPARE_MODULE = "groundstation.runtime.spare"
 
@@ -66,6 +66,9 @@ class WorkerSpec:
     stop_timeout_s : float, optional
         How long to wait after SIGINT before SIGTERM (default: :meth:`Supervisor.stop`'s);
         a recorder gets longer to write what it still holds.
+    nice : int
+        Priority change the worker asks for at start (``GS_NICE``; negative = more CPU share;
+        without the privilege it runs at the default priority and says so).
     """
 
     name: str
@@ -78,6 +81,7 @@ class WorkerSpec:
     warm: bool = False
     group: str = ""
     stop_timeout_s: float | None = None
+    nice: int = 0
 
     @property
     def module(self) -> str | None:
@@ -148,6 +152,8 @@ class Supervisor:
         env[PARENT_ENV] = str(os.getpid())
         env[NAME_ENV] = w.spec.name
         env[INCARNATION_ENV] = str(w.starts)
+        if w.spec.nice:
+            env[PRIORITY_ENV] = str(w.spec.nice)
         return env
 
     def _popen(self, argv: Sequence[str], env: dict[str, str], stdin) -> subprocess.Popen:

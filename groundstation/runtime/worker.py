@@ -49,6 +49,9 @@ from groundstation.runtime.session import RateCounter, Session, StopSignals, pub
 PARENT_ENV = "GS_SUPERVISOR_PID"
 NAME_ENV = "GS_WORKER_NAME"
 INCARNATION_ENV = "GS_INCARNATION"
+#: Nice value increment asked for a worker (negative: more CPU share than the rest of the
+#: machine; needs the privilege, else the worker runs at the default priority and says so).
+PRIORITY_ENV = "GS_NICE"
 #: Seconds an orphaned worker gets to shut down cleanly before it exits hard.
 ORPHAN_GRACE_S = 1.2
 _PR_SET_PDEATHSIG = 1
@@ -101,6 +104,19 @@ def request_stop(stop: Any, reason: str) -> None:
         setter(reason)
     except TypeError:
         setter()
+
+
+def apply_priority() -> str | None:
+    """Apply ``GS_NICE`` to this process; returns a note when it could not (no privilege)."""
+    raw = os.environ.get(PRIORITY_ENV)
+    if not raw:
+        return None
+    try:
+        delta = int(raw)
+        os.setpriority(os.PRIO_PROCESS, 0, os.getpriority(os.PRIO_PROCESS, 0) + delta)
+    except (ValueError, PermissionError, OSError) as exc:
+        return f"runs at the default priority: cannot apply nice {raw} ({exc})"
+    return None
 
 
 class OrphanWatch(threading.Thread):
@@ -302,6 +318,9 @@ def worker_main(
     setting, bad URI) prints ``error:``/``hint:`` and returns 2, like the command line.
     """
     die_with_parent()
+    note = apply_priority()
+    if note:
+        print(f"[{parser.prog.rsplit('.', 1)[-1]}] {note}", file=sys.stderr, flush=True)
     args = parser.parse_args(argv)
     stop = StopSignals()
     try:

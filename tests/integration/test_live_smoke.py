@@ -21,7 +21,7 @@ from tests.integration.test_pilot_sitl import free_udp_port, start, stop, wait_f
 LIVE_S = 24  # status lines (~seconds) to wait for before SIGINT (start-up included)
 STEADY = 8  # lines checked once the streams flow
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = pytest.mark.timeout(420)
 
 
 def sitl_device(out: Path, proc: subprocess.Popen, timeout: float = 30) -> str:
@@ -50,7 +50,10 @@ def run_live_against_sitl(
 ) -> tuple[int, dict, list[str], str]:
     """Start the SITL (pty + UDP mocap) and ``live``; wait for ``n_lines`` status lines (calling
     ``during()`` once started), SIGINT ``live``; returns (exit code, summary, lines, stderr)."""
+    from tests.integration.live_session import private_root
+
     mport = free_udp_port()
+    root = private_root()  # other test runs remove /tmp/gs-* folders that appear meanwhile
     sitl = start(
         ["sitl", "--link", "pty", "--mocap", f"udp://127.0.0.1:{mport}", *sitl_args],
         tmp_path / "sitl.out", tmp_path / "sitl.err",
@@ -61,7 +64,7 @@ def run_live_against_sitl(
         live = start(
             ["live", "--link", f"serial://{dev}?baud=921600",
              "--mocap", f"natnet://127.0.0.1:{mport}", "--summary", str(tmp_path / "summary.json"),
-             *live_args],
+             "--session-root", root, *live_args],
             tmp_path / "live.out", tmp_path / "live.err",
         )  # fmt: skip
         if during is not None:
@@ -74,6 +77,9 @@ def run_live_against_sitl(
     finally:
         rc = stop(live) if live is not None else -1
         stop(sitl, signal.SIGTERM)
+        import shutil
+
+        shutil.rmtree(root, ignore_errors=True)
     err = (tmp_path / "live.err").read_text()
     summary = json.loads((tmp_path / "summary.json").read_text()) if rc >= 0 else {}
     return rc, summary, status_lines(tmp_path / "live.out"), err
@@ -143,15 +149,22 @@ def test_a_killed_mapper_is_restarted_and_loses_no_observation(tmp_path):
         wait_for(lambda: _pid(err, "mapper") is not None, 60, "the mapper to start", poll=0.2)
         wait_for(lambda: len(status_lines(tmp_path / "live.out")) >= 20, 120, "20 s of session",
                  poll=0.5)  # fmt: skip
+        # after its first mesh (a cold first fit takes tens of seconds on a loaded machine)
+        wait_for(lambda: any("mesh #" in ln for ln in status_lines(tmp_path / "live.out")),
+                 240, "a first mesh", poll=0.5)  # fmt: skip
         pid = _pid(err, "mapper")
+        n = len(status_lines(tmp_path / "live.out"))
         os.kill(pid, signal.SIGKILL)
         killed.append(pid)
         wait_for(lambda: _pid(err, "mapper", 1) is not None, 60, "the mapper restart", poll=0.2)
+        # the restarted mapper's first mesh (a cold fit: tens of seconds on a loaded machine)
+        wait_for(lambda: any("mesh #0 " in ln for ln in status_lines(tmp_path / "live.out")[n:]),
+                 240, "a mesh from the restarted mapper", poll=0.5)  # fmt: skip
 
     rc, summary, lines, stderr = run_live_against_sitl(
         tmp_path,
         45,
-        ["--scene", "wall", "--pilot", "script:survey", "--duration", "150"],
+        ["--scene", "wall", "--pilot", "script:survey", "--duration", "400"],
         ["--record", str(rec_path), "--no-viewer"],
         during=kill_mapper_once_observations_flow,
     )

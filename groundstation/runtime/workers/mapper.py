@@ -25,10 +25,13 @@ After each refit the shell publishes ``mesh`` (when the fit produced a new one),
 (ids, u, flags, ``reliable``, ``reasons``, ``data_ns``, ``lag_s``) and ``status`` (state
 ``fitting`` with the fit's running time, ``idle``, ``unreliable``).
 
-Restart (``--recording PATH``): a restarted mapper reads every observation the session's
-recording holds and, through :mod:`groundstation.runtime.catchup`, waits until the recording
-reaches the first observation it receives live on each detector stream, so that the rebuilt map
-holds every observation published while it was down (ids seen twice are ignored).
+Restart (``--recording PATH``): a restarted mapper first reads every observation the session's
+recording holds. From then on it repairs holes: when an observation arrives whose sequence
+number skips some on its detector stream (published while the mapper was down or starting, not
+yet on disk when it read the recording), the missing ones are read from the recording as soon
+as the recorder has written them (it closes a chunk at least once a second), so the rebuilt map
+holds every observation published while it was down (ids seen twice are ignored). What the
+recording does not hold within ``REPAIR_WAIT_S`` is counted as lost (status ``catchup.lost``).
 
 When the detector's ``log`` "detector finished ..." arrives (end of a replay), the child refits
 once more on everything and the shell publishes ``log`` "mapper finished: fit N".
@@ -54,7 +57,7 @@ from groundstation.bus.pubsub import Subscriber
 from groundstation.config import Config, to_toml
 from groundstation.contact.detector import Observation
 from groundstation.contact.stage import observation_from_envelope
-from groundstation.runtime.catchup import GapPlan, catch_up
+from groundstation.runtime.catchup import GapPlan, catch_up, read_recorded
 from groundstation.runtime.session import (
     Session,
     add_session_arguments,
@@ -71,6 +74,10 @@ TOPICS = ("mesh", "mapper.fit", "status", "log")
 MAPPER_FINISHED = "mapper finished"
 _RECV_MS = 20
 _BATCH = 500
+#: Seconds a hole in an observation stream is looked for in the recording before it counts as
+#: lost, and how often it is looked for.
+REPAIR_WAIT_S = 10.0
+_REPAIR_EVERY_S = 0.5
 
 
 def load_recorded_observations(path: str) -> tuple[list[Observation], int]:
@@ -203,6 +210,12 @@ class MapperProcess(Worker):
         self.child_restarts = 0
         self.restored = 0
         self.catchup: dict = {}
+        self.have: dict[int, int] = {}  # newest sequence number per detector origin
+        self.holes: dict[int, set[int]] = {}  # missing sequence numbers per origin
+        self.hole_since: float | None = None
+        self._next_repair = 0.0
+        self.repaired = 0
+        self.lost = 0
 
     # -- observations --------------------------------------------------------------------------
     def add(self, observations: Sequence[Observation]) -> int:
@@ -218,15 +231,53 @@ class MapperProcess(Worker):
             n += 1
         return n
 
-    def handle(self, env) -> None:
+    def handle(self, env, live: bool = True) -> None:
         if env.topic == "log":
             if env.payload.get("message", "").startswith(DETECTOR_FINISHED):
                 self.final_pending = True
             return
+        origin, seq = int(env.header.origin), int(env.header.seq)
+        have = self.have.get(origin, -1)
+        if live and self.recording is not None and seq > have + 1:
+            self.holes.setdefault(origin, set()).update(range(have + 1, seq))
+            self.hole_since = self.hole_since or time.monotonic()
+        if seq > have:
+            self.have[origin] = seq
+        self.holes.get(origin, set()).discard(seq)
         try:
             self.add([observation_from_envelope(env)])
         except (KeyError, ValueError, TypeError):
             self.bad += 1
+
+    def _repair(self) -> None:
+        """Read the holes of the observation streams from the recording (see the module
+        docstring)."""
+        now = time.monotonic()
+        if not any(self.holes.values()) or now < self._next_repair:
+            return
+        self._next_repair = now + _REPAIR_EVERY_S
+        plan = GapPlan()
+        for origin, missing in self.holes.items():
+            if missing:
+                plan.consumed[("observations", origin)] = min(missing) - 1
+                plan.first_live[("observations", origin)] = max(missing) + 1
+        try:
+            found = read_recorded(self.recording, ("observations",), None, plan)
+        except Exception as exc:  # noqa: BLE001 - not on disk yet, unreadable: try again
+            found = []
+            self.log("warning", f"cannot read {self.recording} for missed observations: {exc}")
+        for env in found:
+            if int(env.header.seq) in self.holes.get(int(env.header.origin), ()):
+                self.handle(env, live=False)
+                self.repaired += 1
+        if not any(self.holes.values()):
+            self.hole_since = None
+        elif self.hole_since is not None and now - self.hole_since > REPAIR_WAIT_S:
+            n = sum(len(v) for v in self.holes.values())
+            self.lost += n
+            self.log("warning", f"{n} observation(s) not in the recording after "
+                     f"{REPAIR_WAIT_S:.0f} s: lost")  # fmt: skip
+            self.holes, self.hole_since = {}, None
 
     # -- worker hooks --------------------------------------------------------------------------
     def setup(self) -> int | None:
@@ -245,21 +296,21 @@ class MapperProcess(Worker):
     def _restore(self) -> None:
         self.state = "catching up"
         self.publish_status()
+        # one read: what is not on disk yet is repaired as a hole when the next one arrives
         res = catch_up(self.recording, ("observations",), GapPlan(), self.sub.recv,
-                       stop=self.stopping)  # fmt: skip
+                       stop=self.stopping, deadline_s=0.0)  # fmt: skip
         for env in res.recorded:
-            self.handle(env)
+            self.handle(env, live=False)
         self.restored = len(self.held)
         for env in res.live:
-            self.handle(env)
+            self.handle(env)  # a hole before them is repaired from the recording later
         self.catchup = {"recorded": len(res.recorded), "live_buffered": len(res.live),
-                        "lost": sum(res.lost.values()), "reads": res.reads,
-                        "seconds": round(res.waited_s, 3), "error": res.error}  # fmt: skip
-        lost = f"; {sum(res.lost.values())} observation(s) lost: {res.lost}" if res.lost else ""
+                        "reads": res.reads, "seconds": round(res.waited_s, 3),
+                        "error": res.error}  # fmt: skip
         err = f"; recording unreadable: {res.error}" if res.error else ""
-        self.log("warning" if (res.lost or res.error) else "info",
+        self.log("warning" if res.error else "info",
                  f"restored {self.restored} observations from {self.recording} in "
-                 f"{res.waited_s:.1f} s{lost}{err}")  # fmt: skip
+                 f"{res.waited_s:.1f} s{err}")  # fmt: skip
 
     def step(self) -> None:
         sub = self.sub
@@ -269,6 +320,8 @@ class MapperProcess(Worker):
             self.handle(env)
             n += 1
             env = sub.recv(0) if n < _BATCH else None
+        if self.recording is not None:
+            self._repair()
         self._tend_child()
 
     def _tend_child(self) -> None:
@@ -359,8 +412,10 @@ class MapperProcess(Worker):
                        "fitting_s": busy, "child_restarts": self.child_restarts,
                        "refit_period_s": self.config.mapper.refit_period_s},
         }  # fmt: skip
-        if self.catchup:
-            topics["catchup"] = self.catchup
+        if self.catchup or self.repaired or self.lost:
+            topics["catchup"] = {**self.catchup, "repaired": self.repaired,
+                                 "missing": sum(len(v) for v in self.holes.values()),
+                                 "lost": self.lost + self.catchup.get("lost", 0)}  # fmt: skip
         return topics
 
     def status_text(self) -> str:
