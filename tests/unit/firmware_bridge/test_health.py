@@ -63,16 +63,3 @@ def test_percentile_nearest_rank():
     assert percentile(list(range(1, 101)), 50) == 50
     assert percentile(list(range(1, 101)), 99) == 99
     assert percentile([7], 99) == 7
-
-
-def test_loss_fraction_from_sequence_gaps():
-    from firmware_bridge.mavlink.codec import DecodeStats
-    from firmware_bridge.mavlink.health import LinkHealth
-
-    h = LinkHealth()
-    assert h.loss_fraction() == 0.0
-    h.total_records = 97
-    st = DecodeStats()
-    st.seq_gaps[(1, 1)] = 3
-    h.on_stats(st)
-    assert h.loss_fraction() == 0.03 and "lost 3 (3.00%)" in h.summary()
