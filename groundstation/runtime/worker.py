@@ -4,10 +4,11 @@ shutdown.
 A worker (link, mocap, recorder, replay, detector, mapper, pilot) subclasses :class:`Worker` and
 fills in hooks; the base owns the lifecycle that used to be copied across the shells:
 
-1. **Parent death.** :func:`die_with_parent` asks the kernel (``prctl(PR_SET_PDEATHSIG)``) to send
-   SIGTERM when the supervisor dies, and exits at once if it already has; :class:`OrphanWatch`
-   then gives the worker :data:`ORPHAN_GRACE_S` to shut down cleanly (the recorder closes its
-   file) before it exits hard, so a SIGKILLed ``live`` leaves no worker behind after 2 s.
+1. **Parent death.** :func:`die_with_parent` asks the kernel (``prctl(PR_SET_PDEATHSIG)``) to
+   SIGKILL the worker when the supervisor dies, and exits at once if it already has. A worker
+   with something to save (the recorder: :attr:`Worker.parent_death_signal`) asks for SIGTERM
+   instead, and :class:`OrphanWatch` gives it :data:`ORPHAN_GRACE_S` to close its file before it
+   exits hard, so a SIGKILLed ``live`` leaves no worker behind after 2 s.
 2. **Signals.** SIGINT/SIGTERM set a stop flag (:class:`~groundstation.runtime.session.
    StopSignals`) checked between steps; every ``step`` blocks for at most ~100 ms.
 3. **Ready handshake.** :meth:`Worker.wait_ready`: the XPUB subscriber count, with a warning on
@@ -53,7 +54,7 @@ INCARNATION_ENV = "GS_INCARNATION"
 #: machine; needs the privilege, else the worker runs at the default priority and says so).
 PRIORITY_ENV = "GS_NICE"
 #: Seconds an orphaned worker gets to shut down cleanly before it exits hard.
-ORPHAN_GRACE_S = 1.2
+ORPHAN_GRACE_S = 0.8
 _PR_SET_PDEATHSIG = 1
 _STATUS_PERIOD_NS = 1_000_000_000
 
@@ -75,7 +76,7 @@ def incarnation() -> int:
         return 0
 
 
-def die_with_parent(sig: int = signal.SIGTERM) -> bool:
+def die_with_parent(sig: int = signal.SIGKILL) -> bool:
     """Have the kernel send ``sig`` to this process when its supervisor dies (Linux
     ``PR_SET_PDEATHSIG``); exit at once when the supervisor is already gone.
 
@@ -134,7 +135,7 @@ class OrphanWatch(threading.Thread):
         if self.parent is None:
             return
         while os.getppid() == self.parent:
-            time.sleep(0.1)
+            time.sleep(0.05)
         self.orphaned.set()
         self._stop_fn()
         time.sleep(self.grace_s)
@@ -161,6 +162,10 @@ class Worker:
     """
 
     status_period_ns = _STATUS_PERIOD_NS
+    #: Signal the kernel sends this worker when the supervisor dies: SIGKILL (nothing to save),
+    #: SIGTERM for a worker that must close something first (with :class:`OrphanWatch` as the
+    #: deadline).
+    parent_death_signal = signal.SIGKILL
 
     def __init__(
         self,
@@ -265,7 +270,8 @@ class Worker:
         """Run until a stop signal, :meth:`finished` or ``max_s`` seconds; returns the exit
         code."""
         self.stop = stop if stop is not None else StopSignals()
-        if supervisor_pid() is not None:
+        if supervisor_pid() is not None and self.parent_death_signal != signal.SIGKILL:
+            die_with_parent(self.parent_death_signal)
             self.watch = OrphanWatch(lambda: request_stop(self.stop, "ORPHANED"))
             self.watch.start()
         end = None if max_s is None else time.monotonic_ns() + int(max_s * 1e9)

@@ -55,18 +55,6 @@ def session_processes(live_pid: int) -> dict[int, str]:
     return out
 
 
-def worker_pid(live_pid: int, name: str) -> int | None:
-    """The running (non-spare) worker ``name`` of a session (``--name`` or module name)."""
-    for pid, cmd in session_processes(live_pid).items():
-        if "runtime.spare" in cmd or "multiprocessing" in cmd:
-            continue
-        if f"--name {name} " in cmd + " " or f"workers.{name} " in cmd + " ":
-            if name == "recorder" and "--name recorder2" in cmd:
-                continue
-            return pid
-    return None
-
-
 def lock_holder(lock_path: str) -> int | None:
     """The pid holding an ``flock`` on ``lock_path`` (from /proc/locks), or None."""
     try:
@@ -146,9 +134,14 @@ class LiveRun:
         return wait_for(find, timeout, f"{pattern!r} on the status line", poll=0.2)
 
     def pid(self, name: str) -> int | None:
-        if name == "recorder":  # the one that writes: holds the lock
+        """The running process of worker ``name`` (for ``recorder``: the one that writes, the
+        holder of the lock), from what ``live`` printed when it (re)started it."""
+        if name == "recorder":
             return lock_holder(os.path.join(self.session_dir, "recorder.lock"))
-        return worker_pid(self.live.pid, name)
+        pids = re.findall(rf"^started {name} \(pid (\d+)", self.err.read_text(), re.M)
+        if not pids or not os.path.exists(f"/proc/{pids[-1]}"):
+            return None
+        return int(pids[-1])
 
 
 def start_session(

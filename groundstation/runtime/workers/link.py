@@ -2,8 +2,11 @@
 
 ``python -m groundstation.runtime.workers.link --session ID --link URI [--wait-subscribers N]``
 
-- waits (XPUB ready handshake) until ``N`` subscribers hold its data topics, then opens the link;
-  a device that is missing or cannot be opened is not a crash: the process stays up with state
+- opens the link, then waits (XPUB ready handshake) until ``N`` subscribers hold its data topics
+  before it reads: the vehicle's bytes wait in the device's buffers meanwhile (opening a serial
+  port flushes its input, so a restarted link opens first and loses only what arrived while no
+  process held the port); a device that is missing or cannot be opened is not a crash: the
+  process stays up with state
   ``no_device`` (the error in its status text, shown in upper case on the status line) and tries
   again every second, so plugging the radio in is enough. A ``serial://`` path that is a SITL's
   pseudo-terminal link (``sitl --link pty:/path``) whose SITL is gone is refused the same way (a
@@ -321,16 +324,18 @@ class LinkProcess(Worker):
     # -- worker hooks --------------------------------------------------------------------------
     def setup(self) -> int | None:
         self._load_state()
+        self._try_open(request=False)  # first: the port buffers what arrives meanwhile
         if self.wait_ready(self.wait_subscribers, DATA_TOPICS):
             self.wait_ready(self.wait_samples, SAMPLE_TOPICS)  # monitor and detector: samples only
         self._cmd_thread = threading.Thread(
             target=self._command_loop, name="pilot-commands", daemon=True
         )
         self._cmd_thread.start()
-        self._try_open()
+        if self.link is not None:
+            self.request_streams()
         return None
 
-    def _try_open(self) -> None:
+    def _try_open(self, request: bool = True) -> None:
         self._reopen_at = time.monotonic() + _REOPEN_S
         try:
             check_sitl_link(self.uri)
@@ -349,7 +354,8 @@ class LinkProcess(Worker):
         self.state = "running"
         now = time.monotonic_ns()
         self._next_ping = self._next_beat = now
-        self.request_streams()
+        if request:
+            self.request_streams()
 
     def step(self) -> None:
         if self.link is None:

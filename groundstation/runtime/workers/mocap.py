@@ -2,10 +2,11 @@
 
 ``python -m groundstation.runtime.workers.mocap --session ID --mocap natnet://HOST:PORT``
 
-Waits (XPUB ready handshake) for ``--wait-subscribers`` subscribers on its data topics, opens the
-socket, then publishes every datagram on ``raw.natnet`` (receive time as source and receive
-time; the configured NatNet version and Motive up axis travel in the payload so that the
-recorder keeps them as channel metadata), the poses
+Opens the socket (datagrams queue in its receive buffer from then on), waits (XPUB ready
+handshake) for ``--wait-subscribers`` subscribers on its data topics, then publishes every
+datagram on ``raw.natnet`` (receive time as source and receive time; the configured NatNet
+version and Motive up axis travel in the payload so that the recorder keeps them as channel
+metadata), the poses
 :class:`~groundstation.acquisition.decoders.NatNetStreamDecoder` makes of it on
 ``samples.pose``, and ``status`` every ``health_period_s``. Bad datagrams are counted and
 reported in the status, never raised.
@@ -140,9 +141,9 @@ class MocapProcess(Worker):
     # -- worker hooks --------------------------------------------------------------------------
     def setup(self) -> int | None:
         self._load_state()
+        self._try_open()  # first: a restart loses only the datagrams sent while no socket was bound
         if self.wait_ready(self.wait_subscribers, DATA_TOPICS):
             self.wait_ready(self.wait_samples, ("samples.pose",))  # monitor, detector: samples
-        self._try_open()
         return None
 
     def _try_open(self) -> None:

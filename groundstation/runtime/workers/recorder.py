@@ -48,6 +48,7 @@ import argparse
 import collections
 import fcntl
 import os
+import signal
 import sys
 import threading
 import time
@@ -154,6 +155,7 @@ class RecorderProcess(Worker):
         ring_s: float = DEFAULT_RING_S,
     ) -> None:
         super().__init__(session, config, name=name, context=context)
+        self.parent_death_signal = signal.SIGTERM  # close the segment when orphaned
         self.out = Path(out)
         self.sub = Tap(session.subscribe_endpoints(), self.ctx)
         self.dropped = 0
