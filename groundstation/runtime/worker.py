@@ -192,6 +192,7 @@ class Worker:
         self.exit_code = 0
         self.incarnation = incarnation()
         self.started_ns = time.monotonic_ns()
+        self.setup_s: float | None = None
         self.stop: Any = None
         self.watch: OrphanWatch | None = None
         self._next_status = 0
@@ -253,6 +254,7 @@ class Worker:
             "pid": os.getpid(),
             "incarnation": self.incarnation,
             "uptime_s": round((now_ns - self.started_ns) / 1e9, 3),
+            "setup_s": None if self.setup_s is None else round(self.setup_s, 3),
         }
         self.pub.publish(
             "status",
@@ -277,9 +279,13 @@ class Worker:
         end = None if max_s is None else time.monotonic_ns() + int(max_s * 1e9)
         try:
             code = self.setup()
+            self.setup_s = (time.monotonic_ns() - self.started_ns) / 1e9
             if code is not None:
                 self.exit_code = int(code)
                 return self.exit_code
+            if self.incarnation > 0:
+                self.log("info", f"restarted (incarnation {self.incarnation}): ready "
+                         f"{self.setup_s:.2f} s after its start")  # fmt: skip
             if self.state == "starting":
                 self.state = "running"
             self.publish_status()

@@ -42,10 +42,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import mmap
 import os
 import pickle
-import struct
 import sys
 import time
 from collections.abc import Sequence
@@ -64,6 +62,7 @@ from groundstation.runtime.session import (
     session_from_args,
     worker_config,
 )
+from groundstation.runtime.statefile import StateFile
 from groundstation.runtime.worker import Worker, worker_main
 
 TOPICS = ("observations", "contact.event", "status", "log")
@@ -71,36 +70,29 @@ DETECTOR_FINISHED = "detector finished"
 CHECKPOINT_FILE = "detector.ckpt"
 PUBLISHED_FILE = "detector.published"
 _CHECKPOINT_NS = 1_000_000_000
-_COUNTERS = struct.Struct("<QQ")  # outputs published: observations, contact events
 
 
 class PublishedCounter:
     """How many outputs of the stage's numbering are published, per output topic, in a
-    memory-mapped file that outlives the process (no system call per update)."""
+    :class:`~groundstation.runtime.statefile.StateFile` that outlives the process."""
 
     TOPICS = ("observations", "contact.event")
 
     def __init__(self, path: str) -> None:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
-        try:
-            if os.fstat(fd).st_size < _COUNTERS.size:
-                os.ftruncate(fd, _COUNTERS.size)
-            self._map = mmap.mmap(fd, _COUNTERS.size)
-        finally:
-            os.close(fd)
+        self._file = StateFile(path, len(self.TOPICS))
 
     def get(self) -> dict[str, int]:
-        return dict(zip(self.TOPICS, _COUNTERS.unpack_from(self._map, 0), strict=True))
+        return dict(zip(self.TOPICS, self._file.get(), strict=True))
 
     def advance(self, topic: str, seq: int) -> None:
         """Output number ``seq`` of ``topic`` is out."""
-        values = list(_COUNTERS.unpack_from(self._map, 0))
+        values = list(self._file.get())
         k = self.TOPICS.index(topic)
         values[k] = max(values[k], seq + 1)
-        _COUNTERS.pack_into(self._map, 0, *values)
+        self._file.set(*values)
 
     def close(self) -> None:
-        self._map.close()
+        self._file.close()
 
 
 class DetectorProcess(Worker):

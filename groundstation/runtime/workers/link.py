@@ -27,8 +27,9 @@
   at most as long as its input was allowed to age (10-minute soak on a loaded 2-core machine:
   1 of 15006 commands took > 100 ms from tick to link);
 - after a restart, measures the vehicle data it missed: the firmware-time gap between the last
-  IMU sample the previous incarnation published (``link.state`` in the session directory) and
-  the first one it publishes (``restart_gap_s`` in its status, and a ``log`` warning);
+  IMU sample the previous incarnation published (kept current in ``link.state``, a memory-mapped
+  file of the session directory) and the first one it publishes (``restart_gap_s`` in its
+  status, and a ``log`` warning);
 - reports unplug/replug (link events) on ``log`` and ``status``; bad bytes are counted by the
   decoder, never raised. SIGINT/SIGTERM stop it cleanly (exit 0).
 
@@ -41,7 +42,6 @@ from __future__ import annotations
 import argparse
 import collections
 import fcntl
-import json
 import os
 import sys
 import threading
@@ -72,6 +72,7 @@ from groundstation.runtime.session import (
     session_from_args,
     worker_config,
 )
+from groundstation.runtime.statefile import StateFile
 from groundstation.runtime.worker import Worker, worker_main
 
 SAMPLE_TOPICS = ("samples.imu", "samples.attitude", "samples.pose")
@@ -84,7 +85,6 @@ _READ_TIMEOUT_NS = 20_000_000
 MAX_COMMAND_AGE_NS = 200_000_000
 _COMMAND_POLL_MS = 50
 _REOPEN_S = 1.0
-STATE_FILE = "link.state"
 _REPORTED_EVENTS = {
     "disconnected": "warning",
     "reconnect_failed": "warning",
@@ -169,6 +169,7 @@ class LinkProcess(Worker):
         self.last_imu_source_ns: int | None = None
         self.restart_gap_s: float | None = None
         self._previous_imu_ns: int | None = None
+        self._state: StateFile | None = None
         self._tx_lock = threading.Lock()
         self._warnings: collections.deque[str] = collections.deque(maxlen=100)
         self._cmd_stop = threading.Event()
@@ -276,6 +277,8 @@ class LinkProcess(Worker):
                          f"link restart: first vehicle IMU sample {gap:.3f} s (firmware time) "
                          "after the last one published before the restart")  # fmt: skip
         self.last_imu_source_ns = source_ns
+        if self._state is not None:
+            self._state.set(source_ns)
 
     def _report_events(self) -> None:
         assert self.link is not None
@@ -300,26 +303,13 @@ class LinkProcess(Worker):
         )
 
     # -- state across restarts -----------------------------------------------------------------
-    def _state_path(self) -> str:
-        return os.path.join(self.session.directory, f"{self.name}.state")
-
     def _load_state(self) -> None:
         try:
-            with open(self._state_path(), encoding="utf-8") as fh:
-                self._previous_imu_ns = int(json.load(fh)["imu_source_ns"])
-        except (OSError, ValueError, KeyError, TypeError):
-            self._previous_imu_ns = None
-
-    def _save_state(self) -> None:
-        if self.last_imu_source_ns is None:
-            return
-        path = self._state_path()
-        try:
-            with open(path + ".tmp", "w", encoding="utf-8") as fh:
-                json.dump({"imu_source_ns": self.last_imu_source_ns}, fh)
-            os.replace(path + ".tmp", path)
+            self._state = StateFile(os.path.join(self.session.directory, f"{self.name}.state"), 1)
         except OSError:
-            pass
+            return
+        last = self._state.get()[0]
+        self._previous_imu_ns = last if last > 0 else None
 
     # -- worker hooks --------------------------------------------------------------------------
     def setup(self) -> int | None:
@@ -386,7 +376,6 @@ class LinkProcess(Worker):
         """``link.health`` and ``status`` (the health first: the status line reads both)."""
         now_ns = time.monotonic_ns() if now_ns is None else now_ns
         self.pub.publish("link.health", self.decoder.health_payload(self._connected()))
-        self._save_state()
         super().publish_status(now_ns)
 
     def status_topics(self, now_ns: int) -> dict:
@@ -423,7 +412,8 @@ class LinkProcess(Worker):
             with self._tx_lock:
                 link, self.link = self.link, None
             link.close()
-        self._save_state()
+        if self._state is not None:
+            self._state.close()
         self.sub.close()
 
 

@@ -23,7 +23,6 @@ mocap clock, from ``mocap.state`` in the session directory). SIGINT/SIGTERM stop
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -44,6 +43,7 @@ from groundstation.runtime.session import (
     session_from_args,
     worker_config,
 )
+from groundstation.runtime.statefile import StateFile
 from groundstation.runtime.worker import Worker, worker_main
 
 DATA_TOPICS = ("raw.natnet", "samples.pose")
@@ -84,6 +84,7 @@ class MocapProcess(Worker):
         self.last_pose_ns: int | None = None
         self.restart_gap_s: float | None = None
         self._previous_pose_ns: int | None = None
+        self._state: StateFile | None = None
         self._reported_bad = 0
         self._reopen_at = 0.0
         self.status_period_ns = int(s.health_period_s * 1e9)
@@ -115,28 +116,17 @@ class MocapProcess(Worker):
                          f"mocap restart: first pose {gap:.3f} s (mocap time) after the last one "
                          "published before the restart")  # fmt: skip
         self.last_pose_ns = source_ns
+        if self._state is not None:
+            self._state.set(source_ns)
 
     # -- state across restarts -----------------------------------------------------------------
-    def _state_path(self) -> str:
-        return os.path.join(self.session.directory, f"{self.name}.state")
-
     def _load_state(self) -> None:
         try:
-            with open(self._state_path(), encoding="utf-8") as fh:
-                self._previous_pose_ns = int(json.load(fh)["pose_source_ns"])
-        except (OSError, ValueError, KeyError, TypeError):
-            self._previous_pose_ns = None
-
-    def _save_state(self) -> None:
-        if self.last_pose_ns is None:
-            return
-        path = self._state_path()
-        try:
-            with open(path + ".tmp", "w", encoding="utf-8") as fh:
-                json.dump({"pose_source_ns": self.last_pose_ns}, fh)
-            os.replace(path + ".tmp", path)
+            self._state = StateFile(os.path.join(self.session.directory, f"{self.name}.state"), 1)
         except OSError:
-            pass
+            return
+        last = self._state.get()[0]
+        self._previous_pose_ns = last if last > 0 else None
 
     # -- worker hooks --------------------------------------------------------------------------
     def setup(self) -> int | None:
@@ -181,7 +171,6 @@ class MocapProcess(Worker):
             n_new = c.bad - self._reported_bad
             self.log("warning", f"{n_new} bad NatNet datagram(s); last: {self.decoder.last_error}")
             self._reported_bad = c.bad
-        self._save_state()
         super().publish_status(now_ns)
 
     def status_topics(self, now_ns: int) -> dict:
@@ -209,7 +198,8 @@ class MocapProcess(Worker):
         if self.link is not None:
             self.link.close()
             self.link = None
-        self._save_state()
+        if self._state is not None:
+            self._state.close()
 
 
 def _parser() -> argparse.ArgumentParser:
