@@ -203,6 +203,18 @@ def _select(path: Path, recs: list[Recording]) -> list[Recording]:
     return sorted(keep, key=lambda r: _session_of(r)[1])
 
 
+def _select_keep(path: Path, recs: list[Recording]) -> list[Recording]:
+    """:func:`_select` without closing the recordings it leaves out (a cache owns them)."""
+    if path.is_dir():
+        sessions = {_session_of(r)[0] for r in recs}
+        if len(recs) > 1 and (len(sessions) > 1 or None in sessions):
+            raise SegmentError(f"folder {str(path)!r} holds recordings of {len(sessions)} sessions")
+        return sorted(recs, key=lambda r: (_session_of(r)[1], r.path.name))
+    session = _session_of(recs[0])[0]
+    keep = [recs[0]] + [r for r in recs[1:] if session is not None and _session_of(r)[0] == session]
+    return sorted(keep, key=lambda r: _session_of(r)[1])
+
+
 def find_segments(path: str | os.PathLike[str]) -> list[Path]:
     """The segment files of the session at ``path`` in segment order (see :func:`open_session`)."""
     with open_session(path) as session:
@@ -352,6 +364,57 @@ class SessionRecording:
             rec.close()
 
     def __enter__(self) -> SessionRecording:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class GrowingSession:
+    """A session that is still being written, read again and again (a restarted worker catching
+    up): finished segments are opened once and kept, only the newest one is opened again, and
+    only when it has grown.
+
+    Parameters
+    ----------
+    path : path
+        The session's first segment or folder.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], **open_kwargs: Any):
+        self.path = Path(path)
+        self._kw = open_kwargs
+        self._open: dict[Path, tuple[int, Recording]] = {}
+
+    def _recording(self, p: Path, newest: bool) -> Recording:
+        size = p.stat().st_size
+        got = self._open.get(p)
+        if got is not None and (not newest or got[0] == size):
+            return got[1]
+        if got is not None:
+            got[1].close()
+        rec = open_recording(p, **self._kw)
+        self._open[p] = (size, rec)
+        return rec
+
+    def session(self) -> SessionRecording:
+        """The session as it is on disk now (do not close it: :meth:`close` does)."""
+        paths = candidate_paths(self.path)
+        recs = [self._recording(p, k == len(paths) - 1) for k, p in enumerate(paths)]
+        return SessionRecording(_select_keep(self.path, recs))
+
+    def messages(
+        self, topics: Iterable[str] | str | None = None, start_ns: int | None = None
+    ) -> list[RecordedMessage]:
+        """Messages of ``topics`` from log time ``start_ns`` on, in log-time order."""
+        return list(self.session().messages(topics, start_ns))
+
+    def close(self) -> None:
+        for _, rec in self._open.values():
+            rec.close()
+        self._open = {}
+
+    def __enter__(self) -> GrowingSession:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -38,8 +38,10 @@ import argparse
 import importlib.util
 import json
 import math
+import queue
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -179,6 +181,23 @@ def _err(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
+class _Watch(threading.Thread):
+    """Polls the supervisor every ``_POLL_NS`` in its own thread, so that a dead worker is
+    restarted at once even when the monitor is behind (a loaded machine); events go to
+    ``events`` with their time. It must outlive the workers it restarts: Linux sends a
+    worker's parent-death signal when the *thread* that started it ends."""
+
+    def __init__(self, sup: Supervisor) -> None:
+        super().__init__(name="supervisor", daemon=True)
+        self.sup, self.events = sup, queue.Queue()
+        self.halt = threading.Event()
+
+    def run(self) -> None:
+        while not self.halt.wait(_POLL_NS / 1e9):
+            for ev in self.sup.poll():
+                self.events.put((ev, time.monotonic_ns()))
+
+
 def _board(t0: int, resolved: Resolved, args: argparse.Namespace) -> StatusBoard:
     cfg = resolved.config
     expect = ["samples.imu", "samples.attitude"] + (["samples.pose"] if args.mocap else [])
@@ -223,10 +242,12 @@ def run_live(args: argparse.Namespace) -> int:
     board = _board(t0, resolved, args)
     end = math.inf if args.duration is None else t0 + args.duration * 1e9
     clean = True
+    watch = _Watch(sup)
     try:
         for ev in sup.start():
             _err(f"started {ev.name} ({ev.detail})")
-        next_line, next_poll = t0 + 1_000_000_000, t0
+        watch.start()
+        next_line = t0 + 1_000_000_000
         while not stopping and time.monotonic_ns() < end:
             env = sub.recv(50)
             now = time.monotonic_ns()
@@ -237,16 +258,15 @@ def run_live(args: argparse.Namespace) -> int:
                 n += 1
                 env = sub.recv(0) if n < _BATCH else None
                 now = time.monotonic_ns()
-            if now >= next_poll:
-                for ev in sup.poll():
-                    board.on_worker(ev.name, ev.kind, ev.restarts, ev.detail, now)
-                    if ev.kind == "started":  # a restart: same line as at start-up
-                        _err(f"started {ev.name} ({ev.detail})")
-                    else:
-                        rc = "" if ev.returncode is None else f" {ev.returncode}"
-                        _err(f"{ev.name} {ev.kind}{rc} {ev.detail}".rstrip())
-                    clean = clean and ev.kind not in ("gave_up",)
-                next_poll = now + _POLL_NS
+            while not watch.events.empty():
+                ev, t_ev = watch.events.get()
+                board.on_worker(ev.name, ev.kind, ev.restarts, ev.detail, t_ev)
+                if ev.kind == "started":  # a restart: same line as at start-up
+                    _err(f"started {ev.name} ({ev.detail})")
+                else:
+                    rc = "" if ev.returncode is None else f" {ev.returncode}"
+                    _err(f"{ev.name} {ev.kind}{rc} {ev.detail}".rstrip())
+                clean = clean and ev.kind not in ("gave_up",)
             if now >= next_line:
                 board.set_gaps(sub.gaps)
                 print(board.line(now, sup.alive()), flush=True)
@@ -258,6 +278,10 @@ def run_live(args: argparse.Namespace) -> int:
         for ev in sup.stop():
             _err(f"stopped {ev.name} ({ev.detail})")
             clean = clean and ev.returncode == 0
+        # only now: a worker's parent-death signal fires when the thread that started it ends
+        watch.halt.set()
+        if watch.is_alive():
+            watch.join(5)
         while (env := sub.recv(_DRAIN_MS)) is not None:  # the workers' final status
             board.ingest(env, time.monotonic_ns())
         board.set_gaps(sub.gaps)

@@ -23,6 +23,7 @@ import warnings
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
+from groundstation.acquisition.segments import GrowingSession
 from groundstation.bus.envelope import Envelope, from_bytes
 
 StreamKey = tuple[str, int]  # (topic, origin)
@@ -106,24 +107,30 @@ class CatchUpResult:
 
 
 def read_recorded(
-    path: str | Path, topics: Sequence[str], since_ns: int | None, plan: GapPlan
+    source: GrowingSession | str | Path,
+    topics: Sequence[str],
+    since_ns: int | None,
+    plan: GapPlan,
 ) -> list[Envelope]:
     """Envelopes of ``topics`` recorded at or after log time ``since_ns`` that fill ``plan``'s
-    gap, in log-time order (a segment still being written is read up to its last chunk)."""
-    from groundstation.acquisition.segments import open_session
-
+    gap, in log-time order (a segment still being written is read up to its last chunk).
+    ``source``: a :class:`~groundstation.acquisition.segments.GrowingSession` to read again
+    cheaply, or the recording's path."""
+    if not isinstance(source, GrowingSession):
+        with GrowingSession(source) as grow:
+            return read_recorded(grow, topics, since_ns, plan)
     plan.reset_collected()
     out = []
+    start = None if since_ns is None else max(0, since_ns)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the open segment reads as truncated: expected
-        with open_session(path) as rec:
-            for m in rec.messages(list(topics), None if since_ns is None else max(0, since_ns)):
-                try:
-                    env = from_bytes(m.data)
-                except Exception:  # noqa: BLE001 - a damaged message: skip, it counts as missing
-                    continue
-                if plan.wanted(env):
-                    out.append(env)
+        for m in source.session().messages(list(topics), start):
+            try:
+                env = from_bytes(m.data)
+            except Exception:  # noqa: BLE001 - a damaged message: skip, it counts as missing
+                continue
+            if plan.wanted(env):
+                out.append(env)
     return out
 
 
@@ -178,18 +185,22 @@ def catch_up(
     pump(t0 + settle_s)
     recorded: list[Envelope] = []
     reads, error = 0, None
-    while not stop():
-        try:
-            recorded = read_recorded(path, topics, since_ns, plan)
-            error = None
-        except Exception as exc:  # noqa: BLE001 - no file yet, unreadable: retry, then report
-            error = f"{type(exc).__name__}: {exc}"
-        reads += 1
-        if error is None and not {k: n for k, n in plan.missing().items() if k[0] in topics}:
-            break
-        if clock() - t0 >= deadline_s:
-            break
-        pump(clock() + poll_s)
+    grow = GrowingSession(path)  # finished segments are read once, the newest when it grew
+    try:
+        while not stop():
+            try:
+                recorded = read_recorded(grow, topics, since_ns, plan)
+                error = None
+            except Exception as exc:  # noqa: BLE001 - no file yet, unreadable: retry, report
+                error = f"{type(exc).__name__}: {exc}"
+            reads += 1
+            if error is None and not {k: n for k, n in plan.missing().items() if k[0] in topics}:
+                break
+            if clock() - t0 >= deadline_s:
+                break
+            pump(clock() + poll_s)
+    finally:
+        grow.close()
     lost = {f"{k[0]}@{k[1]:08x}": n for k, n in plan.missing().items() if k[0] in topics}
     return CatchUpResult(recorded, live, lost, reads, clock() - t0, error)
 

@@ -29,6 +29,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Sequence
 
@@ -144,6 +145,7 @@ class Supervisor:
         self._stopping = False
         self.spare_delay_s = spare_delay_s
         self.pgid: int | None = None
+        self._lock = threading.RLock()  # poll() may run in a watcher thread (cli/live.py)
 
     # -- processes -----------------------------------------------------------------------------
     def _env(self, w: _Worker) -> dict[str, str]:
@@ -198,11 +200,18 @@ class Supervisor:
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> list[WorkerEvent]:
-        return [self._spawn(w) for w in self._workers.values()]
+        with self._lock:
+            return [self._spawn(w) for w in self._workers.values()]
 
     def poll(self, now: float | None = None) -> list[WorkerEvent]:
-        """Check every worker once; restart the ones whose backoff has elapsed."""
-        now = time.monotonic() if now is None else now
+        """Check every worker once; restart the ones whose backoff has elapsed.
+
+        Note: Linux sends a worker its parent-death signal when the *thread* that started it
+        ends; call this from a thread that outlives the workers."""
+        with self._lock:
+            return self._poll(time.monotonic() if now is None else now)
+
+    def _poll(self, now: float) -> list[WorkerEvent]:
         events: list[WorkerEvent] = []
         for w in self._workers.values():
             if w.proc is not None and w.restart_at is None and not w.gave_up:
@@ -271,7 +280,11 @@ class Supervisor:
     def stop(self, timeout_s: float = 5.0) -> list[WorkerEvent]:
         """Stop workers in reverse start order: SIGINT, then SIGTERM, then SIGKILL; then kill
         whatever is left in the group (spares, a worker's own children)."""
-        self._stopping = True
+        with self._lock:
+            self._stopping = True
+        return self._stop(timeout_s)
+
+    def _stop(self, timeout_s: float) -> list[WorkerEvent]:
         events: list[WorkerEvent] = []
         for w in self._workers.values():
             if w.spare is not None:

@@ -85,6 +85,8 @@ _READ_TIMEOUT_NS = 20_000_000
 MAX_COMMAND_AGE_NS = 200_000_000
 _COMMAND_POLL_MS = 50
 _REOPEN_S = 1.0
+#: Longest ready handshake of a restarted link (its subscribers only reconnect), seconds.
+RESTART_WAIT_S = 1.5
 _REPORTED_EVENTS = {
     "disconnected": "warning",
     "reconnect_failed": "warning",
@@ -315,8 +317,11 @@ class LinkProcess(Worker):
     def setup(self) -> int | None:
         self._load_state()
         self._try_open(request=False)  # first: the port buffers what arrives meanwhile
-        if self.wait_ready(self.wait_subscribers, DATA_TOPICS):
-            self.wait_ready(self.wait_samples, SAMPLE_TOPICS)  # monitor and detector: samples only
+        # a restart waits briefly (its subscribers reconnect within ~0.1 s): the port's
+        # buffers hold the vehicle's bytes for a few seconds only
+        limit = RESTART_WAIT_S if self.incarnation > 0 else None
+        if self.wait_ready(self.wait_subscribers, DATA_TOPICS, limit):
+            self.wait_ready(self.wait_samples, SAMPLE_TOPICS, limit)  # monitor, detector
         self._cmd_thread = threading.Thread(
             target=self._command_loop, name="pilot-commands", daemon=True
         )

@@ -213,6 +213,8 @@ class MapperProcess(Worker):
         self.have: dict[int, int] = {}  # newest sequence number per detector origin
         self.holes: dict[int, set[int]] = {}  # missing sequence numbers per origin
         self.hole_since: float | None = None
+        self._hole_ns = 0
+        self._grow = None  # GrowingSession of the recording, for repairs
         self._next_repair = 0.0
         self.repaired = 0
         self.lost = 0
@@ -240,7 +242,8 @@ class MapperProcess(Worker):
         have = self.have.get(origin, -1)
         if live and self.recording is not None and seq > have + 1:
             self.holes.setdefault(origin, set()).update(range(have + 1, seq))
-            self.hole_since = self.hole_since or time.monotonic()
+            if self.hole_since is None:
+                self.hole_since, self._hole_ns = time.monotonic(), time.monotonic_ns()
         if seq > have:
             self.have[origin] = seq
         self.holes.get(origin, set()).discard(seq)
@@ -261,8 +264,13 @@ class MapperProcess(Worker):
             if missing:
                 plan.consumed[("observations", origin)] = min(missing) - 1
                 plan.first_live[("observations", origin)] = max(missing) + 1
+        if self._grow is None:
+            from groundstation.acquisition.segments import GrowingSession
+
+            self._grow = GrowingSession(self.recording)
+        since = self._hole_ns - 60_000_000_000  # the missing ones were published just before
         try:
-            found = read_recorded(self.recording, ("observations",), None, plan)
+            found = read_recorded(self._grow, ("observations",), since, plan)
         except Exception as exc:  # noqa: BLE001 - not on disk yet, unreadable: try again
             found = []
             self.log("warning", f"cannot read {self.recording} for missed observations: {exc}")
@@ -425,6 +433,8 @@ class MapperProcess(Worker):
     def teardown(self) -> None:
         if self.child is not None:
             self.child.kill()  # at once: a fit in progress is only computation
+        if self._grow is not None:
+            self._grow.close()
         if self.sub is not None:
             self.sub.close()
 

@@ -50,6 +50,8 @@ DATA_TOPICS = ("raw.natnet", "samples.pose")
 TOPICS = (*DATA_TOPICS, "status", "log")
 _READ_TIMEOUT_S = 0.05
 _REOPEN_S = 2.0
+#: Longest ready handshake of a restarted mocap process (its subscribers only reconnect), s.
+RESTART_WAIT_S = 1.5
 
 
 class MocapProcess(Worker):
@@ -132,8 +134,9 @@ class MocapProcess(Worker):
     def setup(self) -> int | None:
         self._load_state()
         self._try_open()  # first: a restart loses only the datagrams sent while no socket was bound
-        if self.wait_ready(self.wait_subscribers, DATA_TOPICS):
-            self.wait_ready(self.wait_samples, ("samples.pose",))  # monitor, detector: samples
+        limit = RESTART_WAIT_S if self.incarnation > 0 else None  # subscribers only reconnect
+        if self.wait_ready(self.wait_subscribers, DATA_TOPICS, limit):
+            self.wait_ready(self.wait_samples, ("samples.pose",), limit)  # monitor, detector
         return None
 
     def _try_open(self) -> None:

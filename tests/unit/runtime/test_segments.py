@@ -85,3 +85,20 @@ def test_a_cut_segment_is_read_up_to_its_last_chunk_and_reported(tmp_path):
             assert rec.recoveries[0][0] == first and "cut short" in rec.describe()
             last = list(rec.messages())[-1]
             assert last.data == b"after" and not rec.segments[-1].truncated
+
+
+def test_a_growing_session_reopens_only_its_newest_segment_when_it_grew(tmp_path):
+    from groundstation.acquisition.segments import GrowingSession
+
+    first = tmp_path / "s.mcap"
+    _write(first, "abc", 0, [("samples.imu", 1, b"a")])
+    with GrowingSession(first) as grow:
+        assert [m.data for m in grow.messages()] == [b"a"]
+        seg0 = grow.session().segments[0]
+        _write(segment_path(first, 1), "abc", 1, [("samples.imu", 2, b"b")])
+        s = grow.session()
+        assert [m.data for m in s.messages()] == [b"a", b"b"]
+        assert s.segments[0] is seg0  # finished: opened once
+        newest = s.segments[1]
+        assert grow.session().segments[1] is newest  # not grown: kept
+        assert [m.data for m in grow.messages("samples.imu", 2)] == [b"b"]
