@@ -20,6 +20,8 @@ mocap socket failed / silent           ``MOCAP FAILED: <reason>``, ``MOCAP SILEN
 mocap datagrams rejected / bad         ``MOCAP REJECTED 12``, ``MOCAP BAD 3``
 no new mesh for > 3 refit periods      ``MAP STALE 12 s``
 recorder writing late / failed         ``REC BEHIND 2.3 s``, ``REC FAILED: ...``
+a restarted worker reading what it      ``DETECTOR CATCHING UP 12 s``
+missed from the recording
 data a restart could not recover       ``DETECTOR LOST 40 SAMPLES IN RESTART``,
                                        ``REC LOST 12 AT TAKEOVER``, ``LINK RESTART GAP 0.43 s``
 the monitor itself behind              ``STATUS LAGS 2.1 s``
@@ -174,6 +176,10 @@ class Alerts:
         self._map(out, now_ns)
         self._recorders(out)
         for name, st in self.status.items():
+            if st.get("state") == "catching up":
+                up = ((st.get("topics") or {}).get("process") or {}).get("uptime_s")
+                took = f" {up:.0f} s" if isinstance(up, int | float) else ""
+                out[f"catching_up:{name}"] = f"{name.upper()} CATCHING UP{took}"
             cu = (st.get("topics") or {}).get("catchup") or {}
             if cu.get("lost"):
                 what = "SAMPLES" if name.startswith("detector") else "OBSERVATIONS"

@@ -146,6 +146,7 @@ def catch_up(
     poll_s: float = 0.4,
     deadline_s: float = 8.0,
     clock: Callable[[], float] = time.monotonic,
+    on_wait: Callable[[], None] | None = None,
 ) -> CatchUpResult:
     """Fill the gap of ``plan`` from the recording at ``path`` while buffering live messages.
 
@@ -168,6 +169,8 @@ def catch_up(
         known.
     poll_s, deadline_s : float
         Re-read interval while the recording does not yet reach live, and the longest wait.
+    on_wait : callable, optional
+        Called between reads (the worker publishes its status meanwhile).
     """
     t0 = clock()
     live: list[Envelope] = []
@@ -198,6 +201,8 @@ def catch_up(
                 break
             if clock() - t0 >= deadline_s:
                 break
+            if on_wait is not None:
+                on_wait()
             pump(clock() + poll_s)
     finally:
         grow.close()

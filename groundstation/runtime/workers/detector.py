@@ -185,7 +185,7 @@ class DetectorProcess(Worker):
         self.state = "catching up"
         self.publish_status()
         res = catch_up(self.recording, INPUT_TOPICS, plan, self.sub.recv, since_ns=since,
-                       stop=self.stopping)  # fmt: skip
+                       stop=self.stopping, on_wait=self._catching_up)  # fmt: skip
         for env in res.recorded:
             self._push(env)
         for env in res.live:
@@ -208,6 +208,12 @@ class DetectorProcess(Worker):
             f"{self.suppressed} output(s) already published skipped{lost}{err}",
         )
         self.state = "running"
+
+    def _catching_up(self) -> None:
+        """During the catch-up: the status says so once a second."""
+        now = time.monotonic_ns()
+        if now >= self._next_status:
+            self.publish_status(now)
 
     def _publish(self, outs: list[Envelope]) -> None:
         for env in outs:

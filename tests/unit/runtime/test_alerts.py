@@ -118,3 +118,11 @@ def test_events_keep_when_and_how_long_and_the_board_lists_them():
     line = b.line(6 * S, {"link": True})
     assert "LINK RESTARTED x1" in line and line.endswith("[all up; restarts link 1]")
     assert b.summary()["restarts"] == {"link": 1}
+
+
+def test_a_worker_catching_up_says_so():
+    a = Alerts(0)
+    a.on_message(status("detector", "catching up", process={"uptime_s": 12.3}), S)
+    assert "DETECTOR CATCHING UP 12 s" in texts(a, S)
+    a.on_message(status("detector", "running"), 2 * S)
+    assert "CATCHING" not in texts(a, 2 * S)
