@@ -286,8 +286,9 @@ class Alerts:
         self._open = {}
 
     def data_loss(self) -> list[str]:
-        """What data the session lost, from the conditions seen (empty: nothing)."""
-        out = []
+        """What data the session lost, from the conditions seen (empty: nothing); a configured
+        stream that never arrived counts too (the session recorded nothing of it)."""
+        out = [f"no {STREAMS.get(t, t)} ever received" for t in self.expect if t not in self.last]
         if self.lost_frames:
             out.append(f"{self.lost_frames} MAVLink frames lost on the link")
         for ev in self.events:

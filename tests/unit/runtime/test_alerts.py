@@ -126,3 +126,9 @@ def test_a_worker_catching_up_says_so():
     assert "DETECTOR CATCHING UP 12 s" in texts(a, S)
     a.on_message(status("detector", "running"), 2 * S)
     assert "CATCHING" not in texts(a, 2 * S)
+
+
+def test_an_expected_stream_that_never_came_counts_as_lost():
+    a = Alerts(0, expect=("samples.imu", "samples.pose"))
+    a.on_message(env("samples.imu"), S)
+    assert a.data_loss() == ["no POSE ever received"]
