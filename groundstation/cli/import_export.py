@@ -18,10 +18,14 @@ def _out_arguments(parser: argparse.ArgumentParser, help_text: str) -> None:
 
 
 def _claim(args: argparse.Namespace) -> None:
-    """An existing output is never overwritten without ``--force`` (error naming the file)."""
+    """An existing output is never overwritten without ``--force`` (error naming the file);
+    a missing input is reported first, by the importer."""
+    from pathlib import Path
+
     from groundstation.acquisition.segments import claim_output
 
-    claim_output(args.out, args.force)
+    if Path(args.src).exists():
+        claim_output(args.out, args.force)
 
 
 def add_import_csv_arguments(parser: argparse.ArgumentParser) -> None:

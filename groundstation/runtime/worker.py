@@ -120,10 +120,18 @@ def apply_priority() -> str | None:
     return None
 
 
+def orphan_deadline(grace_s: float = ORPHAN_GRACE_S) -> None:
+    """End this process ``grace_s`` from now whatever it is doing: a real-time timer whose
+    SIGALRM (default action: terminate) the kernel delivers even to a worker stuck in C code
+    or starved of CPU by a loaded machine. Called once a worker knows it is orphaned."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGALRM, signal.SIG_DFL)  # (Python leaves it so; make sure)
+    signal.setitimer(signal.ITIMER_REAL, grace_s)
+
+
 class OrphanWatch(threading.Thread):
-    """Notices that the supervisor is gone (parent pid changed), sets ``stop`` and, if the
-    process has not exited ``grace_s`` later, ends it with ``os._exit`` (last resort against a
-    worker stuck in C code)."""
+    """Notices that the supervisor is gone (parent pid changed), sets ``stop`` and arms
+    :func:`orphan_deadline` (and, as a last resort, ``os._exit`` after ``grace_s``)."""
 
     def __init__(self, stop: Callable[[], None], grace_s: float = ORPHAN_GRACE_S):
         super().__init__(name="orphan-watch", daemon=True)
@@ -137,8 +145,9 @@ class OrphanWatch(threading.Thread):
         while os.getppid() == self.parent:
             time.sleep(0.05)
         self.orphaned.set()
+        orphan_deadline(self.grace_s)
         self._stop_fn()
-        time.sleep(self.grace_s)
+        time.sleep(self.grace_s + 0.2)
         os._exit(70)
 
 
@@ -263,6 +272,13 @@ class Worker:
         )  # fmt: skip
         self._next_status = now_ns + self.status_period_ns
 
+    def _on_parent_signal(self, signum: int, _frame: object) -> None:
+        """SIGTERM: stop; when it is the parent-death signal, with a kernel deadline."""
+        request_stop(self.stop, signal.Signals(signum).name)
+        parent = supervisor_pid()
+        if parent is not None and os.getppid() != parent:
+            orphan_deadline()
+
     def stopping(self) -> bool:
         """True once a stop was asked for (signal, orphaned, ``max_s``)."""
         return bool(self.stop)
@@ -274,6 +290,8 @@ class Worker:
         self.stop = stop if stop is not None else StopSignals()
         if supervisor_pid() is not None and self.parent_death_signal != signal.SIGKILL:
             die_with_parent(self.parent_death_signal)
+            if threading.current_thread() is threading.main_thread():
+                signal.signal(signal.SIGTERM, self._on_parent_signal)
             self.watch = OrphanWatch(lambda: request_stop(self.stop, "ORPHANED"))
             self.watch.start()
         end = None if max_s is None else time.monotonic_ns() + int(max_s * 1e9)

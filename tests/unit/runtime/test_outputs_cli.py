@@ -30,7 +30,10 @@ def existing(tmp_path):
         ["export", "tlog", "nothing.mcap", "--out", "{out}"],
     ],
 )
-def test_an_existing_output_is_never_overwritten_without_force(argv, existing, capsys):
+def test_an_existing_output_is_never_overwritten_without_force(argv, existing, capsys, tmp_path):
+    for name in ("nothing.csv", "nothing.ulg", "nothing.tlog", "nothing.mcap"):
+        (tmp_path / name).write_bytes(b"input")
+    argv = [str(tmp_path / a) if a.startswith("nothing.") else a for a in argv]
     rc = main([a.replace("{out}", str(existing)) for a in argv])
     err = capsys.readouterr().err
     assert rc == 2, err
