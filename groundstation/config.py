@@ -125,9 +125,12 @@ def _set_path(tree: dict[str, Any], dotted: str, value: str) -> None:
 
 
 def load_config(
-    path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()
+    path: str | Path | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+    base: dict[str, Any] | None = None,
 ) -> Config:
-    """Load the configuration once: defaults, then the TOML file, then ``key=value`` overrides.
+    """Load the configuration once: defaults, then ``base``, the TOML file, ``key=value``
+    overrides.
 
     Parameters
     ----------
@@ -135,12 +138,14 @@ def load_config(
         TOML file whose tables mirror :class:`Config` (``[mapping]``, ``[surface]``, ...).
     overrides : list of str
         ``section.key=value`` strings, as given to ``--set`` on the command line.
+    base : dict, optional
+        Tables applied before the file (e.g. the configuration a recording was made with).
     """
-    tree: dict[str, Any] = {}
+    tree: dict[str, Any] = _merge({}, base or {})
     if path is not None:
         p = Path(path)
         try:
-            tree = tomllib.loads(p.read_text())
+            tree = _merge(tree, tomllib.loads(p.read_text()))
         except FileNotFoundError:
             raise ConfigError(f"config file {str(p)!r} does not exist") from None
         except tomllib.TOMLDecodeError as exc:
@@ -151,6 +156,19 @@ def load_config(
             raise ConfigError(f"override {item!r} is not of the form section.key=value")
         _set_path(tree, key.strip(), value.strip())
     return _build(Config, tree, "")
+
+
+def _merge(into: dict[str, Any], tree: dict[str, Any]) -> dict[str, Any]:
+    """``into`` updated with ``tree``, tables merged key by key (copies, inputs untouched)."""
+    out = dict(into)
+    for key, value in tree.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        elif isinstance(value, dict):
+            out[key] = _merge({}, value)
+        else:
+            out[key] = value
+    return out
 
 
 def to_toml(config: Any) -> str:

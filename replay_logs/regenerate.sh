@@ -21,5 +21,5 @@ for name in "${names[@]}"; do
   fi
   out="${OUT_DIR:-$here}/$name.mcap"
   # shellcheck disable=SC2086
-  (cd "$root" && "$python" -m groundstation.cli sitl ${ARGS[$name]} --speed max --record "$out")
+  (cd "$root" && "$python" -m groundstation.cli sitl ${ARGS[$name]} --speed max --record "$out" --force)
 done

@@ -121,12 +121,18 @@ class LinkHealth:
             return None
         return percentile(iv, 50), percentile(iv, 99)
 
+    def loss_fraction(self) -> float:
+        """Frames lost (MAVLink sequence gaps) over frames sent, since the link opened."""
+        lost = self.stats.lost
+        return lost / (lost + self.total_records) if lost + self.total_records else 0.0
+
     def summary(self) -> str:
         """One status line: rates, bytes/s, lost frames, CRC errors, garbage, latency."""
         parts = [f"{k} {v:.1f}Hz" for k, v in sorted(self.rates().items())]
         parts.append(f"{self.bytes_per_s() / 1000:.1f}kB/s")
         st = self.stats
-        parts.append(f"lost {st.lost} crc {st.crc_errors} garbage {st.garbage_bytes}B")
+        loss = f" ({100 * self.loss_fraction():.2f}%)" if st.lost else ""
+        parts.append(f"lost {st.lost}{loss} crc {st.crc_errors} garbage {st.garbage_bytes}B")
         if st.rejected_signature:
             parts.append(f"badsig {st.rejected_signature}")
         lat = self.latency_ns()

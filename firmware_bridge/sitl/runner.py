@@ -7,7 +7,10 @@ SET_MESSAGE_INTERVAL), HEARTBEAT (1 Hz), NatNet 4.1 frames of rigid body 1 (200 
 replies (COMMAND_ACK, TIMESYNC). :meth:`Simulation.receive` feeds the station's bytes in. Same
 seed and same inputs -> identical bytes. :func:`run_paced` is the thin outer layer that sends
 each item to its sink when its deadline (start + t / speed) comes, against absolute deadlines so
-late wake-ups never accumulate drift; a recorder is just another sink.
+late wake-ups never accumulate drift; a recorder is just another sink. With
+``wait_for_station`` it first holds the vehicle on the ground, sending only a standby HEARTBEAT
+once a second, until the station's first message arrives (its heartbeat or a command): the
+simulated clock starts then, so nothing is flown or sent before anyone listens.
 """
 
 from __future__ import annotations
@@ -86,6 +89,7 @@ class SimStats:
     commands: int = 0
     manual_controls: int = 0
     timesyncs: int = 0
+    station_records: int = 0  # every record decoded from the station's uplink
     per_message: dict[int, int] = field(default_factory=dict)
 
 
@@ -135,6 +139,7 @@ class Simulation:
     def receive(self, data: bytes) -> None:
         """Station -> vehicle bytes (any split; corrupt bytes are skipped and counted)."""
         for rec in self.codec.decode(data, self.vehicle.t_ns):
+            self.stats.station_records += 1
             if isinstance(rec, ManualControl):
                 if rec.target_system in (0, self.system_id):
                     self.stats.manual_controls += 1
@@ -164,6 +169,10 @@ class Simulation:
         self.stats.mavlink_frames += 1
         self.stats.per_message[mid] = self.stats.per_message.get(mid, 0) + 1
         return self.codec.encode(rec)  # type: ignore[arg-type]
+
+    def standby_heartbeat(self) -> bytes:
+        """A HEARTBEAT of the vehicle on the ground (standby), for before the clock starts."""
+        return self._mav(Heartbeat(2, 12, 1 | 16 | 8 | 64, _PX4_MODE["LANDED"], 3), HEARTBEAT_ID)
 
     def _heartbeat(self) -> Heartbeat:
         v = self.vehicle
@@ -302,6 +311,37 @@ class Source(Protocol):
     def flush(self) -> None: ...
 
 
+def wait_for_station(
+    sim: Simulation,
+    sinks: Mapping[str, Sink],
+    sel: selectors.BaseSelector,
+    stop: Callable[[], bool],
+    on_wait: Callable[[float], None] | None = None,
+) -> bool:
+    """Hold the vehicle until the station sends anything (see the module docstring): a standby
+    HEARTBEAT every second meanwhile (a listening UDP station learns the address from it).
+    Returns False when ``stop`` ended the wait."""
+    t0 = next_beat = time.monotonic()
+    heard = sim.stats.station_records
+    mav = sinks.get("mavlink")
+    while sim.stats.station_records == heard:
+        if stop():
+            return False
+        now = time.monotonic()
+        if now >= next_beat:
+            if mav is not None:
+                mav.send(sim.standby_heartbeat())
+            if on_wait is not None:
+                on_wait(now - t0)
+            next_beat += 1.0
+        for key, _ in sel.select(min(0.1, max(0.0, next_beat - time.monotonic()))):
+            data = key.data.recv()
+            if data:
+                sim.receive(data)
+            key.data.flush()
+    return True
+
+
 def run_paced(
     sim: Simulation,
     sinks: Mapping[str, Sink],
@@ -309,17 +349,23 @@ def run_paced(
     speed: float = 1.0,
     stop: Callable[[], bool] = lambda: False,
     on_second: Callable[[float], None] | None = None,
+    wait: bool = False,
+    on_wait: Callable[[float], None] | None = None,
 ) -> None:
     """Send ``sim.outputs()`` to ``sinks[channel]`` at ``speed`` x real time (inf = no pacing).
 
     Deadlines are absolute (start + t_sim / speed), so a late wake-up sends everything that is
     due at once and never shifts later deadlines. While waiting, the ``sources`` (the station's
     command uplink) are read and fed to ``sim.receive``. ``on_second`` is called with the sim
-    time at most once per wall second (status line).
+    time at most once per wall second (status line). ``wait``: hold the vehicle until the
+    station is heard first (:func:`wait_for_station`; ``on_wait`` gets the seconds waited).
     """
     sel = selectors.DefaultSelector()
     for src in sources:
         sel.register(src.fileno(), selectors.EVENT_READ, src)
+    if wait and not wait_for_station(sim, sinks, sel, stop, on_wait):
+        sel.close()
+        return
     pace = math.isfinite(speed)
     start = time.monotonic_ns()
     last_status = start

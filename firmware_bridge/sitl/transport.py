@@ -3,10 +3,17 @@
 Both are thin: ``send(bytes)`` never blocks the simulation (a full pty buffer drops whole frames
 and counts them), ``recv()`` returns what the station sent (non-blocking), ``fileno()`` serves
 select. The pty's device path is what the station opens (``serial:///dev/pts/N``).
+
+``pty:/path`` (:class:`PtyTransport` with ``link_path``) also makes ``/path`` a symlink to the
+pty and holds a lock on ``/path.lock`` while the SITL runs; the station opens
+``serial:///path`` and refuses it once the lock is free (the SITL is gone and ``/dev/pts/N`` may
+belong to another process by then), so a station never attaches to another process's vehicle
+through a stale or reused pty number.
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import ipaddress
@@ -39,9 +46,12 @@ class PtyTransport:
     Parameters
     ----------
     max_pending : bytes buffered while the reader is slow; beyond it whole frames are dropped.
+    link_path : a path to make a symlink to the pty (held with ``link_path + ".lock"``).
     """
 
-    def __init__(self, max_pending: int = 65536):
+    def __init__(self, max_pending: int = 65536, link_path: str | None = None):
+        self.link_path: str | None = None
+        self._lock_fd = -1
         self.master, self._slave = os.openpty()
         try:
             tty.setraw(self._slave)  # no echo, no line discipline: bytes pass unchanged
@@ -56,7 +66,44 @@ class PtyTransport:
         self.max_pending = max_pending
         self._pending = bytearray()
         self.stats = TransportStats()
-        self.uri = f"serial://{self.path}?baud=921600"
+        if link_path is not None:
+            try:
+                self._make_link(os.path.abspath(link_path))
+            except LinkError:
+                self.close()
+                raise
+        self.uri = f"serial://{self.link_path or self.path}?baud=921600"
+
+    def _make_link(self, path: str) -> None:
+        """``path`` -> our pty, locked while we run; never replaces anything but a stale link."""
+        lock = path + ".lock"
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise LinkError(f"cannot create the SITL link lock {lock}: {exc.strerror}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise LinkError(
+                f"{path} is the link of another running SITL", hint="choose another path"
+            ) from None
+        try:
+            if os.path.lexists(path):
+                if not os.path.islink(path):
+                    raise LinkError(
+                        f"{path} exists and is not a SITL link; not replacing it",
+                        hint="choose another path for --link pty:PATH",
+                    )
+                os.unlink(path)  # a stale link of a SITL that is gone (its lock was free)
+            os.symlink(self.path, path)
+        except OSError as exc:
+            os.close(fd)
+            raise LinkError(f"cannot create the SITL link {path}: {exc.strerror}") from None
+        except LinkError:
+            os.close(fd)
+            raise
+        self._lock_fd, self.link_path = fd, path
 
     def fileno(self) -> int:
         return self.master
@@ -129,13 +176,22 @@ class PtyTransport:
         return data
 
     def close(self) -> None:
-        for fd in (getattr(self, "master", -1), getattr(self, "_slave", -1)):
+        path = getattr(self, "link_path", None)
+        if path is not None:
+            with contextlib.suppress(OSError):
+                if os.path.islink(path) and os.readlink(path) == self.path:
+                    os.unlink(path)
+            with contextlib.suppress(OSError):
+                os.unlink(path + ".lock")
+            self.link_path = None
+        for fd in (getattr(self, "master", -1), getattr(self, "_slave", -1),
+                   getattr(self, "_lock_fd", -1)):  # fmt: skip
             if fd >= 0:
                 try:
                     os.close(fd)
                 except OSError:
                     pass
-        self.master = self._slave = -1
+        self.master = self._slave = self._lock_fd = -1
 
 
 class UdpTransport:
@@ -208,12 +264,18 @@ class UdpTransport:
 
 
 def open_transport(link: str) -> PtyTransport | UdpTransport:
-    """``pty`` -> :class:`PtyTransport`; ``udp://HOST:PORT`` -> :class:`UdpTransport`."""
+    """``pty`` or ``pty:/path`` -> :class:`PtyTransport`; ``udp://HOST:PORT`` ->
+    :class:`UdpTransport`."""
     if link == "pty":
         return PtyTransport()
+    if link.startswith("pty:"):
+        path = link[4:]
+        if not path:
+            raise LinkError("--link pty:PATH needs a path", hint="e.g. --link pty:/tmp/sitl-link")
+        return PtyTransport(link_path=path)
     if link.startswith("udp://"):
         return UdpTransport(link)
     raise LinkError(
-        f"--link {link!r}: expected 'pty' or udp://HOST:PORT",
+        f"--link {link!r}: expected 'pty', 'pty:/path' or udp://HOST:PORT",
         hint="e.g. --link udp://127.0.0.1:14550",
     )

@@ -39,7 +39,13 @@ File-level records
 ------------------
 - Metadata record ``groundstation`` (all values strings): ``layout``, ``station_version``,
   ``created_by`` (the program and command that wrote the file), ``config`` (the effective
-  configuration as text, may be empty), ``sources`` (JSON list of source URIs), plus free keys.
+  configuration as TOML, every section as ``groundstation config show`` prints it, so a replay
+  can start from exactly the settings the session ran with; may be empty; recordings written
+  before this layout note hold only the ``[acquisition]`` table), ``sources`` (JSON list of
+  source URIs), plus free keys. A live session's recording adds ``session`` (the session id) and
+  ``segment`` (``"0"``, ``"1"``, ...): a session is its ordered segments, ``flight.mcap``,
+  ``flight.001.mcap``, ... (:mod:`~groundstation.acquisition.segments`), each a complete MCAP
+  file of its own with the same metadata apart from ``segment``.
 - Attachment ``truth.json`` (media type ``application/json``): ground truth when it exists (the
   scene, contact events, reference trajectories), one JSON object.
 """
@@ -84,6 +90,9 @@ KEY_LAYOUT = "layout"
 KEY_SOURCE = "source"
 KEY_NATNET_VERSION = "natnet_version"
 KEY_MOTIVE_UP = "motive_up"
+KEY_CONFIG = "config"
+KEY_SESSION = "session"
+KEY_SEGMENT = "segment"
 
 
 class LayoutError(GroundstationError, ValueError):
@@ -172,6 +181,8 @@ def station_metadata(
     config: str = "",
     sources: Iterable[str] = (),
     extra: Mapping[str, str] | None = None,
+    session: str | None = None,
+    segment: int | None = None,
 ) -> dict[str, str]:
     """The ``groundstation`` metadata record (all values are strings).
 
@@ -187,14 +198,24 @@ def station_metadata(
         Source URIs.
     extra : mapping of str to str, optional
         Free keys; they may not shadow the fixed ones.
+    session : str, optional
+        Session id of a live recording (its segments share it).
+    segment : int, optional
+        Index of this file among the session's segments (0 = the first).
     """
     meta = {
         KEY_LAYOUT: LAYOUT_VERSION,
         "station_version": str(station_version),
         "created_by": str(created_by),
-        "config": str(config),
+        KEY_CONFIG: str(config),
         "sources": json.dumps([str(s) for s in sources]),
     }
+    if session is not None:
+        meta[KEY_SESSION] = str(session)
+    if segment is not None:
+        if int(segment) < 0:
+            raise LayoutError(f"segment index {segment} must be >= 0")
+        meta[KEY_SEGMENT] = str(int(segment))
     for key, value in (extra or {}).items():
         if key in meta:
             raise LayoutError(f"metadata key {key!r} is reserved by the layout")
@@ -202,6 +223,16 @@ def station_metadata(
             raise LayoutError(f"metadata must map str to str, got {key!r}: {value!r}")
         meta[key] = value
     return meta
+
+
+def segment_index(meta: Mapping[str, str]) -> int | None:
+    """The ``segment`` index of a metadata record (None when absent or not a number >= 0)."""
+    raw = meta.get(KEY_SEGMENT)
+    try:
+        value = int(raw) if raw is not None else None
+    except ValueError:
+        return None
+    return value if value is not None and value >= 0 else None
 
 
 def parse_sources(meta: Mapping[str, str]) -> list[str]:

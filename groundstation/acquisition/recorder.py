@@ -11,12 +11,17 @@
   :class:`RecordingError` naming the path and the OS error; after that the recorder refuses
   further writes and ``close()`` only releases the file. The process shell puts the error on the
   bus.
+- **Never erases.** A recorder creates its file and refuses an existing one
+  (:class:`RecordingExistsError`); ``replace=True`` (a command's ``--force``) removes it first.
+  A restarted or standby recorder writes a new segment beside the first
+  (:mod:`~groundstation.acquisition.segments`) instead of truncating anything.
 - **Determinism.** No clock is read here: identical calls give byte-identical files.
 """
 
 from __future__ import annotations
 
 import os
+import stat
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -40,12 +45,25 @@ class RecordingError(GroundstationError, OSError):
     """Writing or reading a recording failed; the message names the path and the cause."""
 
 
+class RecordingExistsError(RecordingError, FileExistsError):
+    """The output recording exists; a recorder never overwrites one (``--force`` removes it)."""
+
+
 class _Passthrough:
-    """Minimal file-like object (write/tell/flush/close) over an unbuffered file descriptor."""
+    """Minimal file-like object (write/tell/flush/close) over an unbuffered file descriptor.
+
+    Creates the file exclusively: an existing regular file raises ``FileExistsError`` (never
+    truncated); an existing device or FIFO (``/dev/full``, a pipe) is opened for writing.
+    """
 
     def __init__(self, path: Path):
         self.path = path
-        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            if stat.S_ISREG(os.stat(path).st_mode):
+                raise
+            self._fd = os.open(path, os.O_WRONLY)
         self._pos = 0
 
     def write(self, data: bytes | bytearray | memoryview) -> int:
@@ -107,7 +125,8 @@ class Recorder:
     Parameters
     ----------
     path : str or Path
-        Output file; created or truncated. Its directory must exist.
+        Output file, created; an existing file is refused (never truncated). Its directory
+        must exist.
     metadata : mapping of str to str, optional
         The ``groundstation`` metadata record (see :func:`layout.station_metadata`); written at
         once, so even a file cut short after one chunk says what wrote it.
@@ -117,9 +136,13 @@ class Recorder:
         Maximum log-time span of one chunk, ns.
     compression : {"zstd", "none"}
         Chunk compression.
+    replace : bool
+        Remove an existing file at ``path`` first (what ``--force`` asks for).
 
     Raises
     ------
+    RecordingExistsError
+        If ``path`` exists and ``replace`` is False.
     RecordingError
         If the file cannot be created or written (the message names path and OS error).
     """
@@ -132,6 +155,7 @@ class Recorder:
         chunk_bytes: int = DEFAULT_CHUNK_BYTES,
         max_chunk_span_ns: int = DEFAULT_MAX_CHUNK_SPAN_NS,
         compression: str = "zstd",
+        replace: bool = False,
     ):
         if chunk_bytes <= 0 or max_chunk_span_ns <= 0:
             raise layout.LayoutError(
@@ -152,6 +176,8 @@ class Recorder:
         self._closed = False
         self._stream: _Passthrough | None = None
         try:
+            if replace and self.path.is_file():
+                self.path.unlink()
             self._stream = _Passthrough(self.path)
             self._writer = Writer(
                 self._stream,  # type: ignore[arg-type]
@@ -161,6 +187,14 @@ class Recorder:
             self._writer.start(profile=layout.PROFILE, library=self._library())
             if metadata is not None:
                 self._writer.add_metadata(layout.METADATA_NAME, dict(metadata))
+        except FileExistsError:
+            err = RecordingExistsError(
+                f"recording {str(self.path)!r} already exists; not overwriting it",
+                hint="choose another file, or pass --force to replace it",
+            )
+            err.errno, err.filename = 17, str(self.path)
+            self._failed = err
+            raise err from None
         except OSError as exc:
             self._fail(exc, "create")
         self._sync_stats()

@@ -38,7 +38,8 @@ from groundstation.acquisition.decoders import (
     MavlinkStreamDecoder,
     NatNetStreamDecoder,
 )
-from groundstation.acquisition.reader import ChannelInfo, RecordedMessage, Recording, open_recording
+from groundstation.acquisition.reader import ChannelInfo, RecordedMessage, Recording
+from groundstation.acquisition.segments import open_session as open_recording  # segments as one
 from groundstation.acquisition.settings import AcquisitionSettings, natnet_version_tuple
 from groundstation.bus.envelope import Envelope
 from groundstation.errors import GroundstationError

@@ -105,6 +105,7 @@ def generate(spec: SessionSpec, cache: Path) -> Path:
         return path
     tmp = path.with_suffix(".partial.mcap")
     cmd = [sys.executable, "-m", "groundstation.cli", *spec.sitl_args(), "--record", str(tmp)]
+    cmd.append("--force")  # the .partial file of an interrupted run is scratch
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise InputDataError(f"SITL session {spec.name} failed: {done.stderr.strip()[-400:]}")

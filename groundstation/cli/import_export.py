@@ -12,9 +12,25 @@ from __future__ import annotations
 import argparse
 
 
+def _out_arguments(parser: argparse.ArgumentParser, help_text: str) -> None:
+    parser.add_argument("--out", required=True, help=help_text)
+    parser.add_argument("--force", action="store_true", help="replace an existing --out file")
+
+
+def _claim(args: argparse.Namespace) -> None:
+    """An existing output is never overwritten without ``--force`` (error naming the file);
+    a missing input is reported first, by the importer."""
+    from pathlib import Path
+
+    from groundstation.acquisition.segments import claim_output
+
+    if Path(args.src).exists():
+        claim_output(args.out, args.force)
+
+
 def add_import_csv_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("src", help="IMU CSV file (time, Euler_X/Y/Z, Acc_X/Y/Z, Gyr_X/Y/Z)")
-    parser.add_argument("--out", required=True, help="output recording (.mcap)")
+    _out_arguments(parser, "output recording (.mcap)")
     parser.add_argument(
         "--gt", default=None, help="ground-truth CSV (default: GT.csv beside SRC, if present)"
     )
@@ -29,6 +45,8 @@ def add_import_csv_arguments(parser: argparse.ArgumentParser) -> None:
 def run_import_csv(args: argparse.Namespace) -> int:
     from groundstation.acquisition.importers.csv_imu import import_csv
 
+    _claim(args)
+
     report = import_csv(
         args.src,
         args.out,
@@ -42,7 +60,7 @@ def run_import_csv(args: argparse.Namespace) -> int:
 
 def add_import_ulog_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("src", help="PX4 ULog file (.ulg)")
-    parser.add_argument("--out", required=True, help="output recording (.mcap)")
+    _out_arguments(parser, "output recording (.mcap)")
     parser.add_argument(
         "--pose",
         choices=("natnet", "mavlink"),
@@ -53,6 +71,8 @@ def add_import_ulog_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_import_ulog(args: argparse.Namespace) -> int:
     from groundstation.acquisition.importers.ulog import import_ulog
+
+    _claim(args)
 
     report = import_ulog(
         args.src,
@@ -66,11 +86,13 @@ def run_import_ulog(args: argparse.Namespace) -> int:
 
 def add_import_tlog_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("src", help="MAVLink telemetry log (.tlog)")
-    parser.add_argument("--out", required=True, help="output recording (.mcap)")
+    _out_arguments(parser, "output recording (.mcap)")
 
 
 def run_import_tlog(args: argparse.Namespace) -> int:
     from groundstation.acquisition.importers.tlog import import_tlog
+
+    _claim(args)
 
     report = import_tlog(
         args.src, args.out, created_by=f"groundstation import tlog {args.src} --out {args.out}"
@@ -80,8 +102,8 @@ def run_import_tlog(args: argparse.Namespace) -> int:
 
 
 def add_export_tlog_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("src", help="recording (.mcap)")
-    parser.add_argument("--out", required=True, help="output telemetry log (.tlog)")
+    parser.add_argument("src", help="recording (.mcap), or a recorded session's folder")
+    _out_arguments(parser, "output telemetry log (.tlog)")
     parser.add_argument(
         "--no-mocap",
         action="store_true",
@@ -91,6 +113,8 @@ def add_export_tlog_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_export_tlog(args: argparse.Namespace) -> int:
     from groundstation.acquisition.importers.export_tlog import export_tlog
+
+    _claim(args)
 
     report = export_tlog(args.src, args.out, natnet_as_mocap=not args.no_mocap)
     print(report.describe())

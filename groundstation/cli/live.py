@@ -3,24 +3,33 @@
 Starts every process of a live session under the supervisor, on one session bus
 (:mod:`groundstation.runtime.session`), in this order::
 
-    recorder (--record)  link  mocap (--mocap)  pilot (--joystick)  mapper  detector  viewer
+    recorder, recorder2 (--record)  link  mocap (--mocap)  pilot (--joystick)  mapper  detector
+    viewer
 
 (the detector and mapper when their modules are installed and ``--no-mapping`` is not given; the
 viewer unless ``--no-viewer``: a window by default, ``--headless --out DIR`` for PNG/PLY files).
+The configuration is resolved once here (``--config``, ``--set``) and written to the session
+directory, where every worker reads it; the recorders store it whole in the recording. The two
+recorders are an active/standby pair (:mod:`groundstation.runtime.workers.recorder`): a killed
+recorder is replaced at once by the other, in a new segment, nothing erased. An existing
+recording is never replaced without ``--force``.
+
 This process is only the operator's terminal: a monitor subscriber feeds
-:class:`~groundstation.runtime.status.StatusBoard`, which prints one status line per second (rates
-per stream, gaps, contacts, observations, refit time, mesh age, the pilot path -- a failsafe in
-upper case with its reason) and, at once, warnings, errors and pilot faults.
+:class:`~groundstation.runtime.status.StatusBoard`, which prints one status line per second
+(rates per stream, gaps, contacts, observations, refit time, mesh age, the pilot path) and, in
+upper case, everything that is wrong (:mod:`groundstation.runtime.alerts`: a worker restarting,
+a silent stream, MAVLink frame loss, a missing device, a stale map, a recorder behind, ...);
+warnings, errors and pilot faults are printed at once.
 
 Ctrl-C (or SIGTERM, or ``--duration``) stops the workers in reverse start order -- viewer,
 detector, mapper, pilot (MANUAL_CONTROL stops: the vehicle's failsafe acts), sources -- and the
-recorder last, which drains its queue and closes the file; the recording is then opened to check
-that it is complete (exit 0) and its contents are summarised. ``--summary FILE`` writes the
-session's measured numbers (refit time, mesh interval, contact-to-mesh latency, gaps) as JSON.
+recorders last, which drain their queue and close the file; the recording is then opened to
+check it and its contents are summarised. The closing summary lists every condition the status
+line showed and what data was lost; the exit code is 0 only when the session ended cleanly and
+lost nothing (1 otherwise). ``--summary FILE`` writes the summary as JSON.
 
-Ready handshake: the link and mocap processes wait for the monitor and the recorder on their
-data topics, the pilot for the link, the monitor and the recorder on ``pilot.command``, so the
-recording starts with sequence 0 of every source stream.
+Workers run in one process group owned by this process and die with it (parent-death signal):
+a SIGKILLed ``live`` leaves no worker behind.
 """
 
 from __future__ import annotations
@@ -29,29 +38,42 @@ import argparse
 import importlib.util
 import json
 import math
+import queue
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
 from groundstation.bus.pubsub import Subscriber
 from groundstation.errors import ConfigError, GroundstationError
-from groundstation.runtime.session import Session, load_settings, new_session_id
+from groundstation.runtime.alerts import Alerts, AlertSettings
+from groundstation.runtime.configuration import Resolved, resolve, write_session_config
+from groundstation.runtime.session import Session, new_session_id
 from groundstation.runtime.sources import source_worker
 from groundstation.runtime.status import StatusBoard
 from groundstation.runtime.supervisor import Supervisor, WorkerSpec, python_module
 
-#: What the monitor subscribes to (every data topic of the sources, so that it is one of the
-#: subscribers the sources wait for; large latest-value state such as meshes is decoded once).
+#: Priority changes (nice) asked for: the acquisition and pilot path get more CPU share than the
+#: rest of a loaded machine, the recorders a little (a privilege; without it they say so).
+NICE = {"link": -5, "mocap": -5, "pilot": -5, "recorder": -3, "recorder2": -3}
+#: What the monitor subscribes to: the samples (so that it is one of the subscribers the sources
+#: wait for) and the state and events it shows; not the raw wire bytes, which only the recorders
+#: need (decoding them here would cost the terminal a third of its CPU for nothing).
 MONITOR_TOPICS = (
-    "raw.mavlink", "raw.natnet", "samples.imu", "samples.attitude", "samples.pose",
+    "samples.imu", "samples.attitude", "samples.pose",
     "link.health", "status", "log", "pilot.command", "pilot.event", "contact.event",
     "observations", "mapper.fit", "mesh",
 )  # fmt: skip
 DETECTOR_MODULE = "groundstation.runtime.workers.detector"
 MAPPER_MODULE = "groundstation.runtime.workers.mapper"
 PILOT_MODULE = "groundstation.runtime.workers.pilot"
+RECORDER_MODULE = "groundstation.runtime.workers.recorder"
+VIEWER_MODULE = "groundstation.runtime.workers.viewer"
+RECORDERS = ("recorder", "recorder2")
 _DRAIN_MS = 300
+_POLL_NS = 50_000_000
+_BATCH = 1000
 
 
 def add_live_arguments(parser: argparse.ArgumentParser) -> None:
@@ -60,6 +82,13 @@ def add_live_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mocap", default=None, help="mocap: natnet://239.255.42.99:1511")
     parser.add_argument("--joystick", default=None, metavar="DEV", help="/dev/input/js0 (or FIFO)")
     parser.add_argument("--record", default=None, metavar="FILE", help="MCAP file to write")
+    parser.add_argument(
+        "--force", action="store_true", help="replace an existing --record file (and segments)"
+    )
+    parser.add_argument(
+        "--segment-s", type=float, default=60.0, metavar="S",
+        help="the recording starts a new segment file every S seconds (default 60)",
+    )  # fmt: skip
     view = parser.add_mutually_exclusive_group()
     view.add_argument("--no-viewer", action="store_true", help="do not start the viewer")
     view.add_argument("--headless", action="store_true", help="viewer writes PNG/PLY to --out")
@@ -85,94 +114,66 @@ def _available(module: str) -> bool:
         return False
 
 
-def _check_config(args: argparse.Namespace) -> None:
-    """Load the configuration once here, so a bad setting fails before any worker starts."""
-    load_settings(args.config, args.set)
-
-
 def plan(args: argparse.Namespace, session_id: str) -> tuple[Session, list[WorkerSpec]]:
     """The session and the worker specs of a live run, in start order (no side effects)."""
-    cfg_file = ["--config", args.config] if args.config else []
-    cfg = (*cfg_file, *[a for s in args.set for a in ("--set", s)])
     mapping = not args.no_mapping and _available(DETECTOR_MODULE) and _available(MAPPER_MODULE)
-    names = ["recorder"] if args.record else []
-    names += ["link"] + (["mocap"] if args.mocap else []) + (["pilot"] if args.joystick else [])
-    names += ["mapper", "detector"] if mapping else []
+    recorders = list(RECORDERS) if args.record else []
+    names = recorders + ["link"] + (["mocap"] if args.mocap else [])
+    names += (["pilot"] if args.joystick else []) + (["mapper", "detector"] if mapping else [])
     session = Session(session_id, tuple(names), args.session_root)
-    rec = 1 if args.record else 0
-    wait_sources = ("--wait-subscribers", str(1 + rec))  # the monitor (+ the recorder)
+    rec = len(recorders)
+    # Ready handshake: the sources wait for both recorders on every data topic, and for the
+    # monitor and the detector too on the sample topics.
+    wait_sources = ("--wait-subscribers", str(rec),
+                    "--wait-samples", str(1 + rec + (1 if mapping else 0)))  # fmt: skip
     specs: list[WorkerSpec] = []
-    if args.record:
-        sources = [args.link] + ([args.mocap] if args.mocap else [])
-        specs.append(
-            WorkerSpec(
-                "recorder",
-                python_module(
-                    "groundstation.runtime.workers.recorder",
-                    *session.as_args(),
-                    "--out",
-                    str(args.record),
-                    "--created-by",
-                    "groundstation live " + " ".join(sys.argv[1:]),
-                    *[a for s in sources for a in ("--source", s)],
-                    *cfg,
-                ),
-            )
-        )
-    specs.append(source_worker(args.link, session, "link", (*wait_sources, *cfg)))
-    if args.mocap:
-        specs.append(source_worker(args.mocap, session, "mocap", (*wait_sources, *cfg)))
+    sources = [args.link] + ([args.mocap] if args.mocap else [])
+    for name in recorders:
+        argv = python_module(
+            RECORDER_MODULE, *session.as_args(), "--name", name, "--out", str(args.record),
+            "--created-by", "groundstation live " + " ".join(sys.argv[1:]),
+            "--segment-s", str(getattr(args, "segment_s", 60.0)),
+            *[a for s in sources for a in ("--source", s)],
+        )  # fmt: skip
+        specs.append(WorkerSpec(name, argv, warm=True, max_restarts=20, group="recorders",
+                                stop_timeout_s=30.0, nice=NICE[name]))  # fmt: skip
+    for spec in (
+        source_worker(args.link, session, "link", wait_sources),
+        *([source_worker(args.mocap, session, "mocap", wait_sources)] if args.mocap else []),
+    ):
+        specs.append(WorkerSpec(spec.name, spec.argv, warm=True, max_restarts=20,
+                                nice=NICE[spec.name]))  # fmt: skip
     if args.joystick:
-        specs.append(
-            WorkerSpec(
-                "pilot",
-                python_module(
-                    PILOT_MODULE,
-                    *session.as_args(),
-                    "--device",
-                    args.joystick,
-                    "--wait-subscribers",
-                    str(2 + rec),
-                    *cfg,
-                ),
-            )
-        )
+        argv = python_module(PILOT_MODULE, *session.as_args(), "--device", args.joystick,
+                             "--wait-subscribers", str(2 + rec))  # fmt: skip
+        specs.append(WorkerSpec("pilot", argv, warm=True, max_restarts=20, nice=NICE["pilot"]))
     if mapping:
-        # The mapper starts first (it restores from the recording, then subscribes); the
-        # detector's ready handshake covers observations and contact.event, which the mapper
-        # does not hold, so it waits for the monitor (and the recorder).
-        mapper_args = ["--recording", str(args.record)] if args.record else []
+        recording = ["--recording", str(args.record)] if args.record else []
         specs.append(
             WorkerSpec(
                 "mapper",
-                python_module(MAPPER_MODULE, *session.as_args(), *mapper_args, *cfg),
+                python_module(MAPPER_MODULE, *session.as_args(), *recording),
                 env=(("OPENBLAS_NUM_THREADS", "1"), ("OMP_NUM_THREADS", "1")),
+                warm=True,
+                max_restarts=20,
             )
         )
-        # --first-id auto: a detector restarted by the supervisor numbers on from the clock
-        detector = ("--wait-subscribers", str(1 + rec), "--first-id", "auto", *cfg)
+        # ids from 0 as in a replay; a restarted detector resumes from its checkpoint and the
+        # recording and publishes each observation once (runtime/workers/detector.py)
+        detector = ("--wait-subscribers", str(2 + rec), "--first-id", "0", *recording)
         specs.append(
-            WorkerSpec("detector", python_module(DETECTOR_MODULE, *session.as_args(), *detector))
+            WorkerSpec(
+                "detector",
+                python_module(DETECTOR_MODULE, *session.as_args(), *detector),
+                warm=True,
+                max_restarts=20,
+            )  # fmt: skip
         )
     if not args.no_viewer:
         view = ["--headless", "--out", str(args.out)] if args.headless else []
-        specs.append(
-            WorkerSpec(
-                "viewer",
-                python_module(
-                    "groundstation.cli",
-                    "view",
-                    "--session",
-                    session.session_id,
-                    "--session-root",
-                    session.root,
-                    "--publishers",
-                    ",".join(session.publishers),
-                    *view,
-                ),
-                max_restarts=3,
-            )
-        )
+        argv = python_module(VIEWER_MODULE, "--session", session.session_id,
+                             "--session-root", session.root, *view)  # fmt: skip
+        specs.append(WorkerSpec("viewer", argv, max_restarts=3))
     return session, specs
 
 
@@ -180,19 +181,55 @@ def _err(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
+class _Watch(threading.Thread):
+    """Polls the supervisor every ``_POLL_NS`` in its own thread, so that a dead worker is
+    restarted at once even when the monitor is behind (a loaded machine); events go to
+    ``events`` with their time. It must outlive the workers it restarts: Linux sends a
+    worker's parent-death signal when the *thread* that started it ends."""
+
+    def __init__(self, sup: Supervisor) -> None:
+        super().__init__(name="supervisor", daemon=True)
+        self.sup, self.events = sup, queue.Queue()
+        self.halt = threading.Event()
+
+    def run(self) -> None:
+        while not self.halt.wait(_POLL_NS / 1e9):
+            for ev in self.sup.poll():
+                self.events.put((ev, time.monotonic_ns()))
+
+
+def _board(t0: int, resolved: Resolved, args: argparse.Namespace) -> StatusBoard:
+    cfg = resolved.config
+    expect = ["samples.imu", "samples.attitude"] + (["samples.pose"] if args.mocap else [])
+    settings = AlertSettings(
+        refit_period_s=cfg.mapper.refit_period_s, min_contacts=cfg.mapper.min_contacts
+    )
+    return StatusBoard(t0, Alerts(t0, settings, expect))
+
+
 def run_live(args: argparse.Namespace) -> int:
     """Run the live session until Ctrl-C / SIGTERM / ``--duration``; 0 when it ended cleanly
-    and the recording (if any) is complete."""
-    _check_config(args)
+    and lost no data."""
+    resolved = resolve(args.config, args.set)
     if args.duration is not None and not args.duration > 0:
         raise ConfigError(f"--duration {args.duration} must be > 0")
+    if not args.segment_s > 0:
+        raise ConfigError(f"--segment-s {args.segment_s} must be > 0")
+    if args.record:
+        from groundstation.acquisition.segments import claim_output
+
+        claim_output(args.record, args.force, "--record")
     session, specs = plan(args, new_session_id())
     if not args.no_mapping and "detector" not in [s.name for s in specs]:
         _err("live: detector/mapper not installed: running acquisition only")
+    if not args.record and "detector" in [s.name for s in specs]:
+        _err("live: no --record: a restarted detector or mapper cannot catch up on what it missed")
+    session.write_info(command="live")
+    write_session_config(session.directory, resolved)
     root = "" if session.root == "/tmp" else f" --session-root {session.root}"
     _err(
         f"live: session {session.session_id}; another viewer: groundstation view --session "
-        f"{session.session_id}{root} --publishers {','.join(session.publishers)}"
+        f"{session.session_id}{root}"
     )
     stopping: list[int] = []
     old = {
@@ -202,20 +239,28 @@ def run_live(args: argparse.Namespace) -> int:
     sub = Subscriber(session.subscribe_endpoints(), MONITOR_TOPICS)
     sup = Supervisor(specs)
     t0 = time.monotonic_ns()
-    board = StatusBoard(t0)
+    board = _board(t0, resolved, args)
     end = math.inf if args.duration is None else t0 + args.duration * 1e9
     clean = True
+    watch = _Watch(sup)
     try:
         for ev in sup.start():
             _err(f"started {ev.name} ({ev.detail})")
+        watch.start()
         next_line = t0 + 1_000_000_000
         while not stopping and time.monotonic_ns() < end:
             env = sub.recv(50)
             now = time.monotonic_ns()
-            if env is not None:
+            n = 0
+            while env is not None:
                 for msg in board.ingest(env, now):
                     _err(msg)
-            for ev in sup.poll():
+                n += 1
+                env = sub.recv(0) if n < _BATCH else None
+                now = time.monotonic_ns()
+            while not watch.events.empty():
+                ev, t_ev = watch.events.get()
+                board.on_worker(ev.name, ev.kind, ev.restarts, ev.detail, t_ev)
                 if ev.kind == "started":  # a restart: same line as at start-up
                     _err(f"started {ev.name} ({ev.detail})")
                 else:
@@ -233,35 +278,67 @@ def run_live(args: argparse.Namespace) -> int:
         for ev in sup.stop():
             _err(f"stopped {ev.name} ({ev.detail})")
             clean = clean and ev.returncode == 0
+        # only now: a worker's parent-death signal fires when the thread that started it ends
+        watch.halt.set()
+        if watch.is_alive():
+            watch.join(5)
         while (env := sub.recv(_DRAIN_MS)) is not None:  # the workers' final status
             board.ingest(env, time.monotonic_ns())
         board.set_gaps(sub.gaps)
-        print("final: " + board.line(time.monotonic_ns(), {}), flush=True)
+        print("final: " + board.line(time.monotonic_ns(), {}, final=True), flush=True)
+        board.alerts.close(time.monotonic_ns())
         sub.close()
         session.cleanup()
     summary = board.summary()
-    ok = clean
+    loss = list(summary["data_loss"])
+    if summary["gaps_monitor"] or summary["gaps_recorder"]:
+        loss.append(
+            f"bus sequence gaps: {summary['gaps_monitor']} (monitor), "
+            f"{summary['gaps_recorder']} (recorder)"
+        )
     if args.record:
-        summary["recording"] = _check_recording(args.record)
-        ok = ok and summary["recording"].get("complete", False)
+        summary["recording"] = check_recording(args.record)
+        if not summary["recording"].get("complete", False):
+            why = summary["recording"].get("error", "its last segment was cut")
+            loss.append(f"recording {args.record} incomplete: {why}")
+    summary["data_loss"] = loss
+    summary["clean_stop"] = clean
+    for ev in summary["events"]:
+        dur = f" for {ev['duration_s']} s" if ev.get("duration_s") is not None else ""
+        _err(f"live event: t={ev['t_s']} s {ev['text']}{dur}")
+    for text in loss:
+        _err(f"live: DATA LOST: {text}")
     _err("live summary: " + json.dumps(summary, default=str))
     if args.summary:
         Path(args.summary).write_text(json.dumps(summary, indent=1, default=str) + "\n")
-    return 0 if ok else 1
+    return 0 if clean and not loss else 1
 
 
-def _check_recording(path: str) -> dict:
-    """Open the recording without recovery: complete?, duration and per-topic counts."""
-    from groundstation.acquisition.reader import open_recording
+def check_recording(path: str) -> dict:
+    """Open the recorded session: its segments, whether the last one closed properly (a cut
+    earlier segment belongs to a recorder that was replaced by its standby), duration and
+    per-topic counts."""
+    import warnings
+
+    from groundstation.acquisition.segments import open_session
 
     try:
-        with open_recording(path) as rec:
-            s = rec.summary
-            out = {"complete": not rec.truncated, "duration_s": s.duration_s,
-                   "topic_counts": dict(s.topic_counts)}  # fmt: skip
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with open_session(path) as rec:
+                s = rec.summary
+                last_cut = rec.segments[-1].truncated
+                out = {
+                    "complete": not last_cut,
+                    "segments": len(rec.segments),
+                    "segments_cut": [p.name for p, _ in rec.recoveries],
+                    "duration_s": s.duration_s,
+                    "topic_counts": dict(s.topic_counts),
+                }
     except GroundstationError as exc:
         _err(f"error: recording {path}: {exc.message}")
         return {"complete": False, "error": exc.message}
     counts = ", ".join(f"{k} {v}" for k, v in sorted(out["topic_counts"].items()))
-    _err(f"recorded {path}: {out['duration_s']:.1f} s, {counts}")
+    cut = f", {len(out['segments_cut'])} cut by a recorder restart" if out["segments_cut"] else ""
+    _err(f"recorded {path}: {out['segments']} segment(s){cut}, {out['duration_s']:.1f} s, {counts}")
     return out

@@ -5,7 +5,10 @@ session, :mod:`groundstation.runtime.session`), prints one status line per secon
 stream and bus gaps as the recorder sees them, bytes written, process states; warnings and
 errors from ``log`` as they come), and stops after ``--duration`` seconds or on Ctrl-C: sources
 first, then the recorder, which drains its queue and closes the file, so the file is complete.
-A worker that dies is restarted by the supervisor (and said so).
+A worker that dies is restarted by the supervisor (and said so); the recorder runs as an
+active/standby pair, so a killed recorder is replaced at once in a new segment. The configuration
+is resolved once here and read by every worker from the session directory; an existing ``--out``
+is never replaced without ``--force``.
 """
 
 from __future__ import annotations
@@ -16,10 +19,11 @@ import signal
 import sys
 import time
 
-from groundstation.acquisition.reader import open_recording
+from groundstation.acquisition.segments import claim_output, open_session
 from groundstation.bus.pubsub import Subscriber
 from groundstation.errors import GroundstationError
-from groundstation.runtime.session import Session, load_settings, new_session_id
+from groundstation.runtime.configuration import resolve, write_session_config
+from groundstation.runtime.session import Session, new_session_id
 from groundstation.runtime.sources import source_worker
 from groundstation.runtime.supervisor import Supervisor, WorkerSpec, python_module
 
@@ -38,6 +42,9 @@ def add_record_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mocap", default=None, help="mocap: natnet://239.255.42.99:1511")
     parser.add_argument("--out", required=True, help="MCAP file to write")
     parser.add_argument(
+        "--force", action="store_true", help="replace an existing --out file (and segments)"
+    )
+    parser.add_argument(
         "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
     )
     parser.add_argument("--config", default=None, help="TOML configuration file")
@@ -49,7 +56,13 @@ def add_record_arguments(parser: argparse.ArgumentParser) -> None:
 
 def status_line(t_s: float, status: dict[str, dict], alive: dict[str, bool]) -> str:
     """One status line from the latest ``status`` payload of each process (pure)."""
-    rec = status.get("recorder", {}).get("topics", {})
+    active = [
+        n
+        for n, st in status.items()
+        if n.startswith("recorder")
+        and st.get("topics", {}).get("recording", {}).get("role") == "active"
+    ]
+    rec = status.get(active[0] if active else "recorder", {}).get("topics", {})
     parts = [f"t={t_s:6.1f} s"]
     for topic, short in _SHORT.items():
         if topic in rec:
@@ -72,22 +85,28 @@ def status_line(t_s: float, status: dict[str, dict], alive: dict[str, bool]) -> 
 
 def run_record(args: argparse.Namespace) -> int:
     """Record until ``--duration`` or Ctrl-C; returns 0 when the file is complete."""
-    load_settings(args.config, args.set)  # fail here, not in three workers
-    names = ("recorder", "link", "mocap") if args.mocap else ("recorder", "link")
+    resolved = resolve(args.config, args.set)  # once, here; the workers read the result
+    claim_output(args.out, args.force)
+    recorders = ("recorder", "recorder2")
+    names = (*recorders, "link", "mocap") if args.mocap else (*recorders, "link")
     session = Session(new_session_id(), names, args.session_root)
-    cfg: list[str] = (["--config", args.config] if args.config else []) + [
-        a for s in args.set for a in ("--set", s)
-    ]
+    session.write_info(command="record")
+    write_session_config(session.directory, resolved)
     sources = [args.link] + ([args.mocap] if args.mocap else [])
-    recorder_argv = python_module(
-        "groundstation.runtime.workers.recorder", *session.as_args(), "--out", args.out,
-        "--created-by", "groundstation record " + " ".join(sys.argv[1:]),
-        *[a for s in sources for a in ("--source", s)], *cfg,
-    )  # fmt: skip
-    specs = [WorkerSpec("recorder", recorder_argv)]
-    specs.append(source_worker(args.link, session, "link", tuple(cfg)))
+    specs = []
+    for name in recorders:
+        recorder_argv = python_module(
+            "groundstation.runtime.workers.recorder", *session.as_args(), "--name", name,
+            "--out", args.out, "--created-by", "groundstation record " + " ".join(sys.argv[1:]),
+            *[a for s in sources for a in ("--source", s)],
+        )  # fmt: skip
+        specs.append(
+            WorkerSpec(name, recorder_argv, warm=True, group="recorders", stop_timeout_s=30.0)
+        )
+    wait = ("--wait-subscribers", str(len(recorders)))
+    specs.append(source_worker(args.link, session, "link", wait))
     if args.mocap:
-        specs.append(source_worker(args.mocap, session, "mocap", tuple(cfg)))
+        specs.append(source_worker(args.mocap, session, "mocap", wait))
 
     stopping: list[int] = []
     old = signal.signal(signal.SIGINT, lambda s, f: stopping.append(s))
@@ -120,13 +139,19 @@ def run_record(args: argparse.Namespace) -> int:
             print(f"stopped {ev.name} ({ev.detail})", file=sys.stderr)
         sub.close()
         session.cleanup()
+    import warnings
+
     try:
-        with open_recording(args.out) as rec:
-            summary = rec.summary
-            complete = not rec.truncated
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with open_session(args.out) as rec:
+                summary = rec.summary
+                complete = not rec.segments[-1].truncated
+                n_seg = len(rec.segments)
     except GroundstationError as exc:
         print(f"error: {exc.message}", file=sys.stderr)
         return 1
     counts = ", ".join(f"{k} {v}" for k, v in sorted(summary.topic_counts.items()))
-    print(f"recorded {args.out}: {summary.duration_s:.1f} s, {counts}", flush=True)
+    print(f"recorded {args.out}: {n_seg} segment(s), {summary.duration_s:.1f} s, {counts}",
+          flush=True)  # fmt: skip
     return 0 if complete else 1

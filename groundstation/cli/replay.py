@@ -5,8 +5,11 @@ pipeline (``pipeline.offline``: fast, deterministic); ``--processes`` forces the
 one (replay source, detector and mapper processes on a session bus; also used for any finite
 ``--speed X``). Both write the same outputs to ``--out`` (``pipeline.outputs``: mesh.ply,
 observations.csv, report.json, snapshots/) and print a progress line on stderr and the report
-summary on stdout. Settings: ``--config FILE`` and ``--set section.key=value`` (every section
-of ``groundstation config show``).
+summary on stdout. Settings: the configuration recorded with the log is the base (so a replay
+reproduces the live detector and mapper; keys this version does not know are reported and
+skipped), ``--config FILE`` and ``--set section.key=value`` apply on top (every section of
+``groundstation config show``). ``LOG`` may be a session's first file or its folder: every
+segment is replayed.
 """
 
 from __future__ import annotations
@@ -38,7 +41,9 @@ def _speed(text: str) -> float:
 
 
 def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("log", help="recording (.mcap; SITL, live or imported)")
+    parser.add_argument(
+        "log", help="recording (.mcap; SITL, live or imported), or a recorded session's folder"
+    )
     parser.add_argument("--speed", type=_speed, default=math.inf, help="max (default) or X")
     parser.add_argument("--out", default=None, help="output folder (default: no files)")
     parser.add_argument(
@@ -83,15 +88,39 @@ def _progress_offline(quiet: bool):
     return show
 
 
-def run_replay(args: argparse.Namespace) -> int:
-    from groundstation.config import load_config
+def _resolve(log: Path, args: argparse.Namespace):
+    """The recorded configuration as the base, ``--config``/``--set`` on top (said on stderr)."""
+    import warnings
 
+    from groundstation.acquisition.segments import open_session
+    from groundstation.runtime.configuration import recorded_base, resolve
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with open_session(log) as rec:
+            tree, what = recorded_base(rec.metadata())
+    resolved = resolve(args.config, args.set, base=tree, base_name=f"{log.name}: {what}")
+    if not args.quiet:
+        on_top = " with --config/--set on top" if (args.config or args.set) else ""
+        base = f"{what}{on_top}" if what else f"defaults{on_top} (the log holds no configuration)"
+        print(f"replay: settings: {base}", file=sys.stderr, flush=True)
+        if resolved.skipped:
+            print(
+                "replay: recorded settings this version does not use, skipped: "
+                + ", ".join(resolved.skipped),
+                file=sys.stderr,
+                flush=True,
+            )
+    return resolved
+
+
+def run_replay(args: argparse.Namespace) -> int:
     log = Path(args.log)
-    if not log.is_file():
+    if not log.exists():
         raise InputDataError(f"recording {str(log)!r} does not exist")
     if args.snapshots < 0:
         raise ConfigError(f"--snapshots must be >= 0, got {args.snapshots}")
-    config = load_config(args.config, args.set)  # validate once, here
+    config = _resolve(log, args).config  # once, here
     if args.checkpoints < 0:
         raise ConfigError(f"--checkpoints must be >= 0, got {args.checkpoints}")
     if args.map == "final" and (args.processes or math.isfinite(args.speed)):
@@ -109,10 +138,9 @@ def run_replay(args: argparse.Namespace) -> int:
         result = run_multiprocess(
             str(log.resolve()),
             speed=args.speed,
-            config_path=args.config,
-            overrides=args.set,
             timeout_s=args.timeout,
             progress=show,
+            config=config,
         )
     else:
         from groundstation.pipeline.offline import run_offline

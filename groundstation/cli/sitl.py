@@ -1,11 +1,19 @@
 """``groundstation sitl``: the simulated vehicle and mocap over real transports.
 
-groundstation sitl [--scene NAME|FILE] [--link pty|udp://HOST:PORT] [--mocap udp://HOST:PORT]
-                   [--pilot script:NAME|manual] [--speed X] [--seed N] [--duration SECONDS]
-                   [--truth FILE] [--record LOG.mcap] [--log-commands FILE]
+groundstation sitl [--scene NAME|FILE] [--link pty|pty:/path|udp://HOST:PORT]
+                   [--mocap udp://HOST:PORT] [--pilot script:NAME|manual] [--speed X] [--seed N]
+                   [--duration SECONDS] [--truth FILE] [--record LOG.mcap [--force]]
+                   [--log-commands FILE] [--no-wait-for-station]
                    [--gust-rate PER_MIN] [--gust-force MIN:MAX] [--gust-duration MIN:MAX]
                    [--gust-cluster P] [--gust-cluster-size A:B]
                    [--physics simple|mujoco] [--friction MU]
+
+By default the vehicle waits on the ground (a standby HEARTBEAT once a second, nothing else)
+until the station's first message: the flight and its clock start when a station listens, so
+no frame is lost before it connects (``--no-wait-for-station``: start at once, as before).
+``--link pty:/path`` also makes ``/path`` a link to the pseudo-terminal, valid only while this
+SITL runs: a station given ``serial:///path`` cannot attach to another process's vehicle through
+a reused ``/dev/pts/N``.
 
 Physics: ``simple`` (default; the home-made rigid body, the drone a 0.2 m x 0.1 m cylinder,
 spring-damper contacts with restitution 0.5) or ``mujoco`` (MuJoCo with the 1 kg guarded X quad's
@@ -94,7 +102,14 @@ def add_sitl_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--link",
         default="pty",
-        help="pty (prints the device to open) or udp://HOST:PORT (MAVLink target)",
+        help="pty (prints the device to open), pty:/path (and a link to it at /path, valid "
+        "while this SITL runs) or udp://HOST:PORT (MAVLink target)",
+    )
+    parser.add_argument(
+        "--wait-for-station",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="hold the vehicle on the ground until the station's first message (default on)",
     )
     parser.add_argument(
         "--mocap",
@@ -181,6 +196,7 @@ def add_sitl_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="LOG.mcap",
         help="with --speed max: write the session straight to this recording (no transports)",
     )
+    parser.add_argument("--force", action="store_true", help="replace an existing --record file")
     parser.add_argument(
         "--log-commands",
         type=Path,
@@ -304,8 +320,11 @@ def _run(args: argparse.Namespace) -> int:
     sinks: dict = {"mavlink": link}
     if mocap_tx is not None:
         sinks["mocap"] = mocap_tx
-    if args.link == "pty":
-        print(f"SITL MAVLink on {link.path}", flush=True)  # type: ignore[union-attr]
+    if isinstance(link, PtyTransport):
+        print(f"SITL MAVLink on {link.link_path or link.path}", flush=True)
+        if link.link_path is not None:
+            print(f"sitl: {link.link_path} -> {link.path} (while this SITL runs)",
+                  file=sys.stderr, flush=True)  # fmt: skip
     else:
         print(f"SITL MAVLink to {args.link} (local port {link.local_port})", flush=True)  # type: ignore[union-attr]
     if mocap_tx is not None:
@@ -349,9 +368,14 @@ def _run(args: argparse.Namespace) -> int:
             flush=True,
         )
 
+    def waiting(waited_s: float) -> None:
+        if waited_s == 0 or int(waited_s) % 10 == 0:
+            print(f"sitl: on the ground, waiting for the station ({waited_s:.0f} s)",
+                  file=sys.stderr, flush=True)  # fmt: skip
+
     wall0 = time.monotonic()
     try:
-        run_paced(sim, sinks, [uplink], args.speed, stop, status)
+        run_paced(sim, sinks, [uplink], args.speed, stop, status, args.wait_for_station, waiting)
     finally:
         if isinstance(uplink, CommandLog):
             uplink.close()
@@ -431,9 +455,14 @@ def _record(args: argparse.Namespace, sim: Simulation) -> int:
     """``--speed max --record``: the simulation straight into an MCAP recording."""
     if args.duration is None and args.pilot in ("manual", "script:hover"):
         raise BridgeError("--record with this pilot needs --duration (it would never end)")
+    from groundstation.acquisition.segments import claim_output
     from groundstation.acquisition.sim_recording import write_simulation  # station side
     from groundstation.errors import GroundstationError
 
+    try:
+        claim_output(args.record, args.force, "--record")
+    except GroundstationError as exc:
+        raise BridgeError(exc.message, exc.hint) from exc
     argv = ["groundstation", "sitl", "--scene", args.scene, "--pilot", args.pilot]
     argv += ["--seed", str(args.seed), "--gust-rate", str(args.gust_rate)]
     argv += _gust_argv(args)

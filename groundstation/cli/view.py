@@ -72,10 +72,13 @@ def _endpoints(args: argparse.Namespace) -> list[str]:
         return eps
     from groundstation.runtime.session import Session
 
-    kw = {}
+    # Fail fast on a session that does not exist (a typo would otherwise wait forever); its
+    # session.json also lists every publisher (the mapper's meshes among them).
+    session = Session.find(args.session, args.session_root)
     if args.publishers:
-        kw["publishers"] = tuple(p for p in args.publishers.split(",") if p)
-    return Session(args.session, root=args.session_root, **kw).subscribe_endpoints()
+        pubs = tuple(p for p in args.publishers.split(",") if p)
+        session = Session(session.session_id, pubs, session.root)
+    return session.subscribe_endpoints()
 
 
 def _settings(args: argparse.Namespace) -> ViewSettings:

@@ -12,8 +12,9 @@ Workers (under :class:`~groundstation.runtime.supervisor.Supervisor`, session en
 
 This process subscribes to ``observations``, ``contact.event``, ``mapper.fit``, ``mesh`` and
 ``log``, counts sequence gaps, and stops the workers once the mapper has published its final
-fit (``log`` "mapper finished: fit N" and that fit's ``mapper.fit``). Every worker gets the same
-``--config`` / ``--set`` as this run.
+fit (``log`` "mapper finished: fit N" and that fit's ``mapper.fit``). The configuration is
+resolved once here (or given resolved, e.g. by ``replay`` on top of the recorded one) and
+written to the session directory, where every worker reads it.
 """
 
 from __future__ import annotations
@@ -26,11 +27,13 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from groundstation.bus.pubsub import Subscriber
+from groundstation.config import Config, to_toml
 from groundstation.contact.stage import observation_from_envelope
 from groundstation.errors import GroundstationError
 from groundstation.mapping.mapper import FitResult
 from groundstation.mapping.surface import SurfaceMesh
 from groundstation.pipeline.offline import PipelineResult, recording_span
+from groundstation.runtime.configuration import Resolved, resolve, write_session_config
 from groundstation.runtime.session import REPLAY_PUBLISHER, Session, new_session_id
 from groundstation.runtime.sources import source_worker
 from groundstation.runtime.supervisor import Supervisor, WorkerSpec, python_module
@@ -51,7 +54,8 @@ def pipeline_workers(
     overrides: Sequence[str] = (),
 ) -> list[WorkerSpec]:
     """Replay, detector and mapper workers of one replay session (command lines documented in
-    the module docstring)."""
+    the module docstring). With ``config_path`` / ``overrides`` every worker parses them;
+    without, they read the session directory's ``config.toml``."""
     common: list[str] = []
     if config_path:
         common += ["--config", str(config_path)]
@@ -109,8 +113,12 @@ def run_multiprocess(
     timeout_s: float = 600.0,
     progress: Callable[[str], None] | None = None,
     session_root: str = "/tmp",
+    config: Config | None = None,
 ) -> PipelineResult:
     """Run the pipeline as processes on ``log_path`` and collect what they publish.
+
+    The configuration is ``config`` when given (already resolved), else ``config_path`` and
+    ``overrides`` resolved once here; either way the workers read it from the session directory.
 
     Raises
     ------
@@ -119,10 +127,16 @@ def run_multiprocess(
     """
     t_wall = time.perf_counter()
     start_ns, duration, truth = recording_span(log_path)
+    resolved = (
+        resolve(config_path, overrides)
+        if config is None
+        else Resolved(config, to_toml(config), base="given")
+    )
     session = Session(new_session_id(), (REPLAY_PUBLISHER, "detector", "mapper"), session_root)
-    session.ensure_directory()
+    session.write_info(command="replay")
+    write_session_config(session.directory, resolved)
     sub = Subscriber(session.subscribe_endpoints(), COLLECT)
-    sup = Supervisor(pipeline_workers(log_path, session, speed, config_path, overrides))
+    sup = Supervisor(pipeline_workers(log_path, session, speed))
     events, observations, fits = [], [], []
     last_mesh: tuple[int, SurfaceMesh] | None = None
     detector_summary: dict = {}
@@ -201,8 +215,8 @@ def run_multiprocess(
 
 
 def _terminate_as_interrupt():
-    """SIGTERM -> KeyboardInterrupt while the workers run, so ``finally`` stops them (they run
-    in their own sessions and would outlive a killed parent). Main thread only."""
+    """SIGTERM -> KeyboardInterrupt while the workers run, so ``finally`` stops them in order
+    (a SIGKILLed parent takes them along by their parent-death signal). Main thread only."""
     import signal
     import threading
 

@@ -14,8 +14,8 @@ import dataclasses
 import time
 from collections.abc import Callable, Iterable, Iterator
 
-from groundstation.acquisition.reader import open_recording
 from groundstation.acquisition.replay import iter_replay
+from groundstation.acquisition.segments import open_session as open_recording  # segments as one
 from groundstation.bus.envelope import Envelope
 from groundstation.config import Config, load_config
 from groundstation.contact.detector import Observation

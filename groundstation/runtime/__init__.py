@@ -1,10 +1,17 @@
 """The runtime room: how the stages run as processes of one session.
 
-- :mod:`.session`: session endpoints (ipc paths per process, subscriber endpoints), stop signals,
-  rate counters and the ``log`` helper every worker uses.
-- :mod:`.supervisor`: starts the workers, restarts a crashed one with bounded backoff, stops them
-  in reverse order.
-- :mod:`.status`: the operator's status line, aggregated from every worker's ``status`` messages.
+- :mod:`.session`: session endpoints (ipc paths per process, subscriber endpoints), the session's
+  ``session.json``, stop signals, rate counters and the ``log`` helper.
+- :mod:`.worker`: the one process shell every worker runs on (signals, parent death, ready
+  handshake, status, shutdown) and :func:`~.worker.worker_main`.
+- :mod:`.configuration`: the configuration resolved once per session, written to the session
+  directory, read by every worker, the recorded one as a replay's base.
+- :mod:`.supervisor`: starts the workers in one process group, restarts a crashed one (from a
+  warm spare, :mod:`.spare`), stops them in reverse order.
+- :mod:`.catchup`: what a restarted worker missed, from the recorded stream; :mod:`.statefile`:
+  the few integers that outlive a worker; :mod:`.tap`: the recorders' header-only subscriber.
+- :mod:`.status` and :mod:`.alerts`: the operator's status line and what it must say in upper
+  case, aggregated from every worker's ``status`` messages and the supervisor's events.
 - :mod:`.sources`: which worker owns a ``serial://``, ``udp://``, ``natnet://`` or ``replay://``
   source.
 - :mod:`.workers`: the process entry points (``python -m groundstation.runtime.workers.NAME``),

@@ -17,6 +17,11 @@ ipc connect until the path is bound, so start order does not matter; publishers 
 the first sample, so nothing is lost at start. The ``live`` and ``replay`` commands reuse this
 module: they only add process names.
 
+The session directory also holds ``session.json`` (the publishers, the supervisor's pid:
+``groundstation view --session ID`` finds every publisher from it and fails fast when the
+session does not exist) and ``config.toml``, the configuration resolved once by ``live``/``replay``
+and read by every worker (:mod:`groundstation.runtime.configuration`).
+
 Settings
 --------
 :class:`~groundstation.acquisition.settings.AcquisitionSettings` is the ``[acquisition]`` section
@@ -28,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import secrets
 from collections.abc import Iterable, Sequence
@@ -42,6 +48,7 @@ LIVE_PUBLISHERS: tuple[str, ...] = ("link", "mocap", "recorder")
 #: Publishing process of a replay session.
 REPLAY_PUBLISHER = "replay"
 _IPC_MAX = 107
+INFO_FILE = "session.json"
 
 
 def load_settings(
@@ -112,6 +119,43 @@ class Session:
 
         shutil.rmtree(self.directory, ignore_errors=True)
 
+    def write_info(self, **extra: object) -> str:
+        """Write ``session.json`` (publishers, root, supervisor pid, extra keys); its path."""
+        self.ensure_directory()
+        path = os.path.join(self.directory, INFO_FILE)
+        info = {"session": self.session_id, "publishers": list(self.publishers),
+                "root": self.root, "pid": os.getpid(), **extra}  # fmt: skip
+        tmp = path + ".tmp"
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(info, fh)
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def find(cls, session_id: str, root: str = "/tmp") -> Session:
+        """The running session ``session_id`` under ``root``, from its ``session.json``.
+
+        Raises
+        ------
+        ConfigError
+            No such session (the message lists the sessions that exist under ``root``).
+        """
+        probe = cls(session_id, (), root)
+        path = os.path.join(probe.directory, INFO_FILE)
+        try:
+            with open(path, encoding="utf-8") as fh:
+                info = json.load(fh)
+            pubs = tuple(str(p) for p in info["publishers"])
+        except (OSError, ValueError, KeyError, TypeError):
+            running = list_sessions(root)
+            raise ConfigError(
+                f"no session {session_id!r} under {root} (no {path})",
+                hint=("running sessions: " + ", ".join(running))
+                if running
+                else "start one with 'groundstation live'; it prints its session id",
+            ) from None
+        return cls(session_id, pubs, root)
+
     def endpoint(self, process: str, policy: Literal["lossless", "latest"] = "lossless") -> str:
         """Bind endpoint of ``process`` for one drop policy."""
         base = f"ipc://{self.directory}/{process}.sock"
@@ -146,16 +190,39 @@ class Session:
         ]  # fmt: skip
 
 
+def list_sessions(root: str = "/tmp") -> list[str]:
+    """Ids of the sessions under ``root`` that have a ``session.json``."""
+    try:
+        names = os.listdir(root)
+    except OSError:
+        return []
+    return sorted(
+        n[3:] for n in names
+        if n.startswith("gs-") and os.path.exists(os.path.join(root, n, INFO_FILE))
+    )  # fmt: skip
+
+
 def add_session_arguments(parser: argparse.ArgumentParser) -> None:
     """``--session``, ``--session-root``, ``--config`` and ``--set`` for a worker entry point."""
     parser.add_argument("--session", required=True, help="session id (see session.py)")
     parser.add_argument("--session-root", default="/tmp", help="parent of the session directory")
     parser.add_argument("--publishers", default=",".join(LIVE_PUBLISHERS),
                         help="comma-separated publishing processes of the session")  # fmt: skip
-    parser.add_argument("--config", default=None, help="TOML configuration file")
+    parser.add_argument(
+        "--config", default=None, help="TOML configuration file (default: the session's)"
+    )
     parser.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", help="override a setting"
     )
+
+
+def worker_config(args: argparse.Namespace):
+    """The configuration of a worker: the session's ``config.toml`` written by the command that
+    started the session, or ``--config``/``--set`` for a worker started by hand."""
+    from groundstation.runtime.configuration import worker_config as _load
+
+    session = session_from_args(args)
+    return _load(session.directory, args.config, args.set)
 
 
 def session_from_args(args: argparse.Namespace) -> Session:
@@ -168,19 +235,27 @@ def session_from_args(args: argparse.Namespace) -> Session:
 
 
 class StopSignals:
-    """Turns SIGINT/SIGTERM into a flag the process loop checks (``bool(stop)``)."""
+    """Turns SIGINT/SIGTERM into a flag the process loop checks (``bool(stop)``); ``event`` is
+    the same flag as a :class:`threading.Event` for loops that wait on one."""
 
     def __init__(self) -> None:
         import signal
+        import threading
 
         self.received: list[str] = []
+        self.event = threading.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._on_signal)
 
     def _on_signal(self, signum: int, _frame: object) -> None:
         import signal
 
-        self.received.append(signal.Signals(signum).name)
+        self.set(signal.Signals(signum).name)
+
+    def set(self, reason: str) -> None:
+        """Ask for a stop (``reason`` is kept in :attr:`received`)."""
+        self.received.append(reason)
+        self.event.set()
 
     def __bool__(self) -> bool:
         return bool(self.received)

@@ -11,7 +11,10 @@
   :func:`refit_seconds`), mesh fit index and age;
 - the pilot path, loudly when it is not sending for a fault: the mux's own status line
   (``!!! PILOT FAILSAFE: JOYSTICK LOST - NOT SENDING ... !!!``), or ``!!! PILOT PROCESS DOWN``;
-- process states from the supervisor (``DOWN`` for a dead worker).
+- process states from the supervisor (``DOWN`` for a dead worker);
+- everything :class:`~groundstation.runtime.alerts.Alerts` finds wrong, in upper case (a worker
+  restarting, a silent stream, MAVLink frame loss, a missing device, a stale map, a recorder
+  behind, ...), and the list of those conditions in the closing summary with what data was lost.
 
 Measurements kept for the closing summary (:meth:`StatusBoard.summary`): refit times, mesh
 update intervals (time between successive ``mesh`` arrivals at the monitor), and
@@ -33,6 +36,7 @@ import numpy as np
 
 from groundstation.bus.envelope import Envelope
 from groundstation.bus.topics import TOPICS
+from groundstation.runtime.alerts import Alerts
 
 #: Streams whose rate is shown, in order, with their short names.
 RATE_STREAMS: tuple[tuple[str, str], ...] = (
@@ -97,10 +101,14 @@ class StatusBoard:
     ----------
     t0_ns : int
         Session start, ns (monotonic; the clock of every ``now_ns`` given later).
+    alerts : Alerts, optional
+        The conditions to watch (default: worker restarts and the other workers' reports
+        only, no stream expected).
     """
 
-    def __init__(self, t0_ns: int):
+    def __init__(self, t0_ns: int, alerts: Alerts | None = None):
         self.t0_ns = int(t0_ns)
+        self.alerts = alerts if alerts is not None else Alerts(t0_ns)
         self.counts: dict[str, int] = {}
         self._counts_at_line: dict[str, int] = {}
         self._line_ns: int | None = None
@@ -132,6 +140,7 @@ class StatusBoard:
         faults, warnings and errors from ``log``)."""
         topic, p = env.topic, env.payload
         self.counts[topic] = self.counts.get(topic, 0) + 1
+        self.alerts.on_message(env, now_ns)
         if topic == "status":
             self.status[str(p.get("process", "?"))] = dict(p)
             if p.get("process") == "mapper":
@@ -215,13 +224,29 @@ class StatusBoard:
                 self.latencies_s.append((mesh_ns - t) / 1e9)
         del self.latencies_s[:-_MAX_SERIES]
 
+    def on_worker(self, name: str, kind: str, restarts: int, detail: str, now_ns: int) -> None:
+        """A supervisor event (started, exited, restarting, gave_up) at ``now_ns``."""
+        self.alerts.on_worker(name, kind, restarts, detail, now_ns)
+
     def set_gaps(self, gaps: Mapping[str, int]) -> None:
         """The monitor subscriber's own gap counts per topic."""
         self.gaps = {k: int(v) for k, v in gaps.items()}
 
     # -- render --------------------------------------------------------------------------------
+    def recorder_status(self) -> dict[str, Any]:
+        """The status of the recorder that writes (of an active/standby pair), or {}."""
+        recs = {
+            n: st
+            for n, st in self.status.items()
+            if n.startswith("recorder") or "recording" in st.get("topics", {})
+        }
+        for st in recs.values():
+            if st.get("topics", {}).get("recording", {}).get("role", "active") == "active":
+                return st
+        return recs.get("recorder", next(iter(recs.values()), {}))
+
     def _recorder_gaps(self, latest: bool) -> int:
-        rec = self.status.get("recorder", {}).get("topics", {})
+        rec = self.recorder_status().get("topics", {})
         return sum(
             int(v.get("gaps", 0))
             for k, v in rec.items()
@@ -256,8 +281,11 @@ class StatusBoard:
             return "pilot: starting"
         return str(st.get("text") or f"PILOT: {st.get('state')}")
 
-    def line(self, now_ns: int, alive: Mapping[str, bool] | None = None) -> str:
-        """One status line at ``now_ns``; rates are over the time since the previous line."""
+    def line(
+        self, now_ns: int, alive: Mapping[str, bool] | None = None, final: bool = False
+    ) -> str:
+        """One status line at ``now_ns``; rates are over the time since the previous line.
+        ``final``: the line after every worker stopped (no stream or link is expected then)."""
         alive = dict(alive or {})
         dt = None if self._line_ns is None else (now_ns - self._line_ns) / 1e9
         for topic, _ in RATE_STREAMS:
@@ -275,7 +303,7 @@ class StatusBoard:
                 continue
             parts.append(f"{short} {self.rates[topic]:5.1f} Hz")
         gaps = self.monitor_gaps
-        rec_gaps = self.recorder_gaps if "recorder" in self.status else None
+        rec_gaps = self.recorder_gaps if self.recorder_status() else None
         word = "GAPS" if (gaps or rec_gaps) else "gaps"  # loud when anything was lost
         parts.append(f"{word} {gaps}" + ("" if rec_gaps is None else f"/{rec_gaps} rec"))
         if rec_gaps is not None and self.recorder_latest_drops:
@@ -294,22 +322,30 @@ class StatusBoard:
             parts.append(f"mesh #{self.mesh.fit_index} age {age:.1f} s")
         elif "mapper" in alive:
             parts.append("mesh none")
-        if self.link_connected is False:
-            parts.append("LINK DISCONNECTED")
-        rec = self.status.get("recorder", {}).get("topics", {}).get("recording")
+        no_device = self.status.get("link", {}).get("state") in ("no_device", "disconnected")
+        if self.link_connected is False and not final and not no_device:
+            parts.append("LINK DISCONNECTED")  # (the link's own state says more when it has one)
+        rec = self.recorder_status().get("topics", {}).get("recording")
         if rec:
             parts.append(f"rec {rec.get('bytes_written', 0) / 1e6:.1f} MB")
             if rec.get("dropped"):
                 parts.append(f"REC DROPPED {rec['dropped']}")
         if pilot is not None and not loud:
             parts.append(pilot)
+        if not final:
+            parts += self.alerts.update(now_ns, alive)
+        restarts = {n: w["restarts"] for n, w in self.alerts.workers.items() if w["restarts"]}
+        note = "; restarts " + ", ".join(f"{n} {k}" for n, k in sorted(restarts.items()))
         if alive:
             down = [n for n, up in alive.items() if not up]
-            parts.append("[" + (("DOWN: " + ", ".join(down)) if down else "all up") + "]")
+            state = ("DOWN: " + ", ".join(down)) if down else "all up"
+            parts.append("[" + state + (note if restarts else "") + "]")
         return "  ".join(parts)
 
     def summary(self) -> dict[str, Any]:
-        """Measured numbers of the session (for the closing note and the soak test)."""
+        """Measured numbers of the session (for the closing note and the soak test), every
+        condition the status line showed (``events``: when, how long) and what data was lost
+        (``data_loss``)."""
         link = self.status.get("link", {}).get("topics", {}).get("pilot.command", {})
         return {
             "duration_s": None if self._line_ns is None else (self._line_ns - self.t0_ns) / 1e9,
@@ -331,4 +367,8 @@ class StatusBoard:
             "manual_control_stale_dropped": link.get("stale_dropped"),
             "warnings": self.warnings,
             "errors": self.errors,
+            "restarts": {n: w["restarts"] for n, w in sorted(self.alerts.workers.items())},
+            "link_lost_frames": self.alerts.lost_frames,
+            "events": [dict(e) for e in self.alerts.events],
+            "data_loss": self.alerts.data_loss(),
         }

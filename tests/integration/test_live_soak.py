@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from groundstation.acquisition.reader import open_recording
+from groundstation.acquisition.segments import open_session as open_recording
 from groundstation.bus.envelope import decode, unpack_frames
 from groundstation.runtime.status import refit_seconds
 from tests.integration.test_live_smoke import run_live_against_sitl

@@ -35,7 +35,8 @@ from firmware_bridge.mavlink.messages import (
 from firmware_bridge.natnet import FrameOfData, parse_packet
 
 ROOT = Path(__file__).resolve().parents[2]
-SITL = [sys.executable, "-m", "groundstation.cli", "sitl"]
+# these tests read the SITL's stream without a station: it must not wait for one
+SITL = [sys.executable, "-m", "groundstation.cli", "sitl", "--no-wait-for-station"]
 IMU_PERIOD_NS = 5_000_000
 
 pytestmark = pytest.mark.timeout(120)

@@ -64,12 +64,56 @@ def test_stop_escalates_to_sigterm_for_a_worker_that_ignores_sigint():
 
 
 def test_restart_policy_follows_the_time_given():
+    """The first restart in the window is immediate (a restart window loses data); the next
+    ones back off."""
     spec = WorkerSpec("x", (sys.executable, "-c", "raise SystemExit(1)"), backoff_s=4.0)
     sup = Supervisor([spec])
     sup.start()
     sup._workers["x"].proc.wait(10)
     events = sup.poll(now=1000.0)
-    assert [e.kind for e in events] == ["exited", "restarting"]
-    assert sup.poll(now=1003.0) == []  # backoff (4 s) not yet elapsed
-    assert [e.kind for e in sup.poll(now=1004.5)] == ["started"]
+    assert [e.kind for e in events] == ["exited", "restarting", "started"]
+    assert events[-1].restarts == 1
+    sup._workers["x"].proc.wait(10)
+    assert [e.kind for e in sup.poll(now=1001.0)] == ["exited", "restarting"]
+    assert sup.poll(now=1004.0) == []  # backoff (4 s) not yet elapsed
+    assert [e.kind for e in sup.poll(now=1005.5)] == ["started"]
+    sup.stop()
+
+
+def test_workers_share_one_process_group_apart_from_the_supervisor_and_know_their_parent():
+    import os
+
+    script = "import os; print(os.getpgid(0), os.environ['GS_SUPERVISOR_PID'], flush=True)"
+    import subprocess
+
+    specs = [WorkerSpec(n, (sys.executable, "-c", script)) for n in ("a", "b")]
+    sup = Supervisor(specs, stdout=subprocess.PIPE)
+    sup.start()
+    out = [sup._workers[n].proc.stdout.readline().split() for n in ("a", "b")]
+    sup.stop()
+    groups = {int(g) for g, _ in out}
+    assert len(groups) == 1 and groups != {os.getpgid(0)}
+    assert {int(p) for _, p in out} == {os.getpid()}
+
+
+def test_a_warm_spare_takes_over_a_dead_worker(tmp_path):
+    """A ``warm`` worker's spare interpreter (imports done) replaces it when it dies."""
+    import os
+    import signal
+
+    marker = tmp_path / "pids"
+    module = "tests.integration.spare_target"
+    spec = WorkerSpec("w", (sys.executable, "-m", module, str(marker)), warm=True)
+    sup = Supervisor([spec], spare_delay_s=0.0)
+    sup.start()
+    first = sup.pid("w")
+    assert _wait_for(lambda: marker.exists() and marker.read_text().strip())
+    assert _wait_for(lambda: (sup.poll(), sup._workers["w"].spare is not None)[1])
+    spare = sup._workers["w"].spare.pid
+    os.kill(first, signal.SIGKILL)
+    seen = []
+    assert _wait_for(lambda: (seen.extend(sup.poll()), any(e.kind == "started" for e in seen))[1])
+    assert sup.pid("w") == spare and "warm spare" in seen[-1].detail
+    assert _wait_for(lambda: marker.exists() and len(marker.read_text().split()) >= 2)
+    assert marker.read_text().split()[-1] == f"{spare}:1"  # incarnation 1, the spare's pid
     sup.stop()

@@ -29,8 +29,8 @@ from groundstation.acquisition.importers.tlog import (
     message_id,
     message_name,
 )
-from groundstation.acquisition.reader import open_recording
 from groundstation.acquisition.recorder import RecordingError
+from groundstation.acquisition.segments import open_session as open_recording  # segments as one
 
 
 class FrameSplitter:

@@ -5,7 +5,7 @@ Command line (started by the supervisor; ``groundstation live`` and ``replay --p
     python -m groundstation.runtime.workers.detector --session ID [--session-root /tmp]
         --publishers replay|link,mocap[,...]   # who publishes samples (subscribe endpoints)
         [--name detector] [--flow-from replay] [--wait-subscribers 1] [--first-id 0]
-        [--config FILE] [--set contact.KEY=VALUE --set alignment.KEY=VALUE ...]
+        [--recording SESSION.mcap]
 
 - Binds as ``--name`` in the session (``/tmp/gs-ID/detector.sock``) and publishes
   ``observations`` and ``contact.event`` (lossless), ``status`` (latest, every second of wall
@@ -20,16 +20,30 @@ Command line (started by the supervisor; ``groundstation live`` and ``replay --p
   stage and publishes ``log`` "detector finished: {json}" with its counters and the sample
   sequence gaps it saw (lossless, after every observation on the same socket), then keeps
   running until SIGINT/SIGTERM. Malformed samples are counted, never raised.
-- ``--first-id N|auto``: first observation id. A restarted detector must not reuse ids (the
-  mapper ignores an id it holds), so live sessions pass ``auto``: the wall clock in
-  microseconds, which a later incarnation always exceeds. Replays use 0 (default), so the
-  multi-process and in-process pipelines number observations alike.
+
+Catch-up after a restart (``--recording``, live sessions)
+-----------------------------------------------------------
+The stage is pure and deterministic, so a restarted detector can continue exactly where the
+killed one stood. About once a second the detector checkpoints ``detector.ckpt`` in the session
+directory: the pickled stage and, per sample stream (topic, publisher origin), the last
+sequence number it consumed. Every output it publishes also advances a small memory-mapped
+counter file (``detector.published``: how many observations and contact events of the stage's
+numbering are out). A restarted detector loads the checkpoint (none: a fresh stage from the
+start of the session), subscribes, reads from the recording every sample between the
+checkpoint and the first one it receives live (:mod:`groundstation.runtime.catchup`), runs them
+through the stage, and publishes only the outputs beyond the counter: every contact event and
+observation comes out exactly once, with the ids a detector that never died would have given.
+Samples that neither the recording nor the live stream hold are counted (``catchup.lost``).
+Ids therefore start at ``--first-id`` (0) in every live session as in a replay; ``auto`` (the
+wall clock) remains for a detector without recording.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import pickle
 import sys
 import time
 from collections.abc import Sequence
@@ -37,24 +51,51 @@ from collections.abc import Sequence
 import zmq
 
 from groundstation.acquisition.replay import FINISHED
-from groundstation.bus.errors import BusTimeoutError
-from groundstation.bus.pubsub import Publisher, Subscriber
-from groundstation.config import Config, load_config
+from groundstation.bus.envelope import Envelope
+from groundstation.bus.pubsub import Subscriber
+from groundstation.config import Config
 from groundstation.contact.stage import INPUT_TOPICS, ContactStage
+from groundstation.runtime.catchup import GapPlan, catch_up, stream_key
 from groundstation.runtime.session import (
-    RateCounter,
     Session,
-    StopSignals,
     add_session_arguments,
-    publish_log,
     session_from_args,
+    worker_config,
 )
+from groundstation.runtime.statefile import StateFile
+from groundstation.runtime.worker import Worker, worker_main
 
 TOPICS = ("observations", "contact.event", "status", "log")
 DETECTOR_FINISHED = "detector finished"
+CHECKPOINT_FILE = "detector.ckpt"
+PUBLISHED_FILE = "detector.published"
+_CHECKPOINT_NS = 1_000_000_000
 
 
-class DetectorProcess:
+class PublishedCounter:
+    """How many outputs of the stage's numbering are published, per output topic, in a
+    :class:`~groundstation.runtime.statefile.StateFile` that outlives the process."""
+
+    TOPICS = ("observations", "contact.event")
+
+    def __init__(self, path: str) -> None:
+        self._file = StateFile(path, len(self.TOPICS))
+
+    def get(self) -> dict[str, int]:
+        return dict(zip(self.TOPICS, self._file.get(), strict=True))
+
+    def advance(self, topic: str, seq: int) -> None:
+        """Output number ``seq`` of ``topic`` is out."""
+        values = list(self._file.get())
+        k = self.TOPICS.index(topic)
+        values[k] = max(values[k], seq + 1)
+        self._file.set(*values)
+
+    def close(self) -> None:
+        self._file.close()
+
+
+class DetectorProcess(Worker):
     """The loop of the detector process (see the module docstring)."""
 
     def __init__(
@@ -66,30 +107,61 @@ class DetectorProcess:
         flow_from: str | None = None,
         wait_subscribers: int = 1,
         first_id: int = 0,
+        recording: str | None = None,
         context: zmq.Context | None = None,
     ) -> None:
-        self.name, self.config = name, config
-        self.session, self.flow_from = session, flow_from
+        super().__init__(session, config, name=name, topics=TOPICS, context=context)
+        self.flow_from, self.recording = flow_from, recording
         self.wait_subscribers = wait_subscribers
-        self.ctx = context or zmq.Context()
-        self.pub = Publisher(topics=TOPICS, context=self.ctx, **session.publisher_kwargs(name))
         self.sub: Subscriber | None = None
+        self.first_id = first_id
         self.stage = ContactStage(
             config.contact, config.alignment, first_id=first_id, vehicle=config.vehicle
         )
-        self.rates = RateCounter()
-        self.state = "starting"
-        self.finished = False
+        self.finished_replay = False
+        self.consumed: dict[tuple[str, int], int] = {}
+        self.last_recv_ns: int | None = None
+        self.catchup: dict = {}
+        self.suppressed = 0
+        self._published: PublishedCounter | None = None
+        self._limit = {"observations": 0, "contact.event": 0}
+        self._next_checkpoint = 0
+        self._dirty = False
 
-    def _connect(self) -> None:
+    # -- files ---------------------------------------------------------------------------------
+    def _path(self, filename: str) -> str:
+        return os.path.join(self.session.directory, f"{self.name}.{filename.split('.', 1)[1]}")
+
+    def _load_checkpoint(self) -> dict | None:
         try:
-            self.pub.wait_for_subscribers(
-                self.wait_subscribers,
-                ("observations",),
-                self.config.acquisition.subscriber_timeout_s,
-            )
-        except BusTimeoutError as exc:
-            publish_log(self.pub, self.name, "warning", f"starting anyway: {exc.message}")
+            with open(self._path(CHECKPOINT_FILE), "rb") as fh:
+                ck = pickle.load(fh)
+            if not isinstance(ck.get("stage"), ContactStage):
+                raise TypeError("not a detector checkpoint")
+            return ck
+        except FileNotFoundError:
+            return None
+        except Exception as exc:  # noqa: BLE001 - unreadable: start from the recording's start
+            self.log("warning", f"checkpoint unreadable ({exc}); catching up from the start")
+            return None
+
+    def checkpoint(self) -> None:
+        """Write the stage and the consumed positions (atomically)."""
+        if self.recording is None or not self._dirty:
+            return
+        path = self._path(CHECKPOINT_FILE)
+        state = {"stage": self.stage, "consumed": self.consumed, "recv_ns": self.last_recv_ns}
+        try:
+            with open(path + ".tmp", "wb") as fh:
+                pickle.dump(state, fh, protocol=pickle.HIGHEST_PROTOCOL)
+            os.replace(path + ".tmp", path)
+            self._dirty = False
+        except (OSError, pickle.PicklingError, TypeError) as exc:
+            self.log("warning", f"cannot checkpoint ({exc}); a restart will re-read the session")
+
+    # -- bus -----------------------------------------------------------------------------------
+    def setup(self) -> int | None:
+        self.wait_ready(self.wait_subscribers, ("observations",))
         flow = None if self.flow_from is None else self.session.flow_endpoint(self.flow_from)
         self.sub = Subscriber(
             self.session.subscribe_endpoints(exclude=(self.name,)),
@@ -97,11 +169,86 @@ class DetectorProcess:
             flow_endpoint=flow,
             context=self.ctx,
         )
+        if self.recording is not None:
+            self._published = PublishedCounter(self._path(PUBLISHED_FILE))
+            ck = self._load_checkpoint()
+            if ck is not None or self.incarnation > 0:
+                self._resume(ck)
+        return None
 
-    def _publish(self, outs) -> None:
+    def _resume(self, ck: dict | None) -> None:
+        """Continue where the previous incarnation stood (see the module docstring)."""
+        if ck is not None:
+            self.stage, self.consumed = ck["stage"], dict(ck["consumed"])
+            self.last_recv_ns = ck.get("recv_ns")
+        self._limit = self._published.get()
+        plan = GapPlan(self.consumed)
+        since = None if self.last_recv_ns is None else self.last_recv_ns - 2_000_000_000
+        self.state = "catching up"
+        self.publish_status()
+        res = catch_up(self.recording, INPUT_TOPICS, plan, self.sub.recv, since_ns=since,
+                       stop=self.stopping, on_wait=self._catching_up)  # fmt: skip
+        for env in res.recorded:
+            self._push(env)
+        for env in res.live:
+            self.handle(env)
+        self.catchup = {
+            "from_checkpoint": ck is not None,
+            "recorded": len(res.recorded),
+            "live_buffered": len(res.live),
+            "lost": sum(res.lost.values()),
+            "reads": res.reads,
+            "seconds": round(res.waited_s, 3),
+            "error": res.error,
+        }
+        lost = f"; {sum(res.lost.values())} sample(s) lost: {res.lost}" if res.lost else ""
+        err = f"; recording unreadable: {res.error}" if res.error else ""
+        self.log(
+            "warning" if (res.lost or res.error) else "info",
+            f"resumed {'from its checkpoint' if ck else 'from the session start'}: "
+            f"{len(res.recorded)} recorded sample(s) caught up in {res.waited_s:.1f} s, "
+            f"{self.suppressed} output(s) already published skipped{lost}{err}",
+        )
+        self.state = "running"
+
+    def _catching_up(self) -> None:
+        """During the catch-up: the status says so once a second."""
+        now = time.monotonic_ns()
+        if now >= self._next_status:
+            self.publish_status(now)
+
+    def _publish(self, outs: list[Envelope]) -> None:
         for env in outs:
+            seq = int(env.header.seq)
+            if seq < self._limit.get(env.topic, 0):
+                self.suppressed += 1  # the previous incarnation published it
+                continue
             self.pub.publish(env.topic, env.payload, env.arrays, source_ns=env.header.source_ns)
             self.rates.add(env.topic)
+            if self._published is not None:
+                self._published.advance(env.topic, seq)
+
+    def _push(self, env: Envelope) -> None:
+        self._publish(self.stage.push(env))
+        self.consumed[stream_key(env)] = int(env.header.seq)
+        if env.header.recv_ns:
+            self.last_recv_ns = int(env.header.recv_ns)
+        self._dirty = True
+
+    def handle(self, env: Envelope) -> None:
+        """One message from the bus: a sample for the stage, or the replay's end marker."""
+        if env.topic == "log":
+            if env.payload.get("message", "").startswith(FINISHED) and not self.finished_replay:
+                self._publish(self.stage.flush())
+                self.finished_replay = True
+                self.state = "finished"
+                text = f"{DETECTOR_FINISHED}: {json.dumps(self.summary(), sort_keys=True)}"
+                self.log("info", text)
+            return
+        key = stream_key(env)
+        if int(env.header.seq) <= self.consumed.get(key, -1):
+            return  # caught up from the recording already
+        self._push(env)
 
     def summary(self) -> dict:
         """Counters for ``status`` and the finished line."""
@@ -113,62 +260,37 @@ class DetectorProcess:
             "bad_messages": 0 if sub is None else sub.bad_messages,
         }
 
-    def _status(self) -> None:
-        topics = self.rates.snapshot(time.monotonic_ns())
-        s = self.summary()
-        topics["stage"] = s["stage"]
-        topics["gaps"] = s["gaps"]
-        self.pub.publish(
-            "status",
-            {
-                "process": self.name,
-                "state": self.state,
-                "topics": topics,
-                "text": f"{self.stage.stats.events} contacts, "
-                f"{self.stage.stats.observations} observations",
-            },
-        )
-
     def step(self, timeout_ms: int = 100) -> bool:
         """Handle at most one message; False on timeout."""
         env = self.sub.recv(timeout_ms)
+        now = time.monotonic_ns()
+        if now >= self._next_checkpoint:
+            self.checkpoint()
+            self._next_checkpoint = now + _CHECKPOINT_NS
         if env is None:
             return False
-        if env.topic == "log":
-            if env.payload.get("message", "").startswith(FINISHED) and not self.finished:
-                self._publish(self.stage.flush())
-                self.finished = True
-                self.state = "finished"
-                text = f"{DETECTOR_FINISHED}: {json.dumps(self.summary(), sort_keys=True)}"
-                publish_log(self.pub, self.name, "info", text)
-            return True
-        self._publish(self.stage.push(env))
+        self.handle(env)
         return True
 
-    def run(self, stop: StopSignals | None = None) -> int:
-        """Run until SIGINT/SIGTERM; returns the exit code."""
-        stop = stop if stop is not None else StopSignals()
-        try:
-            self._connect()
-            self.state = "running"
-            next_status = time.monotonic()
-            while not stop:
-                self.step(100)
-                now = time.monotonic()
-                if now >= next_status:
-                    self._status()
-                    next_status = now + 1.0
-            return 0
-        finally:
-            self.state = "stopped"
-            try:
-                self._status()
-            except Exception:  # noqa: BLE001 - best effort at shutdown
-                pass
-            if self.sub is not None:
-                self.sub.close()
-            self.pub.close()
-            self.ctx.term()
+    def status_topics(self, now_ns: int) -> dict:
+        topics = self.rates.snapshot(now_ns)
+        s = self.summary()
+        topics["stage"] = s["stage"]
+        topics["gaps"] = s["gaps"]
+        if self.catchup:
+            topics["catchup"] = {**self.catchup, "suppressed": self.suppressed}
+        return topics
+
+    def status_text(self) -> str:
+        st = self.stage.stats
+        return f"{st.events} contacts, {st.observations} observations"
+
+    def teardown(self) -> None:
+        self.checkpoint()
+        if self.sub is not None:
+            self.sub.close()
+        if self._published is not None:
+            self._published.close()
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -179,6 +301,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--wait-subscribers", type=int, default=1, help="subscribers to wait for")
     p.add_argument(
         "--first-id", type=first_id, default=0, help="first observation id, or 'auto' (clock)"
+    )
+    p.add_argument(
+        "--recording", default=None, help="the session's recording: catch up after a restart"
     )
     return p
 
@@ -198,17 +323,19 @@ def first_id(text: str) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point (see the module docstring)."""
-    args = _parser().parse_args(argv)
-    stop = StopSignals()
-    proc = DetectorProcess(
-        session_from_args(args),
-        load_config(args.config, args.set),
-        name=args.name,
-        flow_from=args.flow_from,
-        wait_subscribers=args.wait_subscribers,
-        first_id=args.first_id,
-    )
-    return proc.run(stop)
+
+    def build(args: argparse.Namespace) -> DetectorProcess:
+        return DetectorProcess(
+            session_from_args(args),
+            worker_config(args),
+            name=args.name,
+            flow_from=args.flow_from,
+            wait_subscribers=args.wait_subscribers,
+            first_id=args.first_id,
+            recording=args.recording,
+        )
+
+    return worker_main(argv, _parser(), build)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,15 @@
 
 ``python -m groundstation.runtime.workers.link --session ID --link URI [--wait-subscribers N]``
 
-- waits (XPUB ready handshake) until ``N`` subscribers hold its data topics, then opens the link;
+- opens the link, then waits (XPUB ready handshake) until ``N`` subscribers hold its data topics
+  before it reads: the vehicle's bytes wait in the device's buffers meanwhile (opening a serial
+  port flushes its input, so a restarted link opens first and loses only what arrived while no
+  process held the port); a device that is missing or cannot be opened is not a crash: the
+  process stays up with state
+  ``no_device`` (the error in its status text, shown in upper case on the status line) and tries
+  again every second, so plugging the radio in is enough. A ``serial://`` path that is a SITL's
+  pseudo-terminal link (``sitl --link pty:/path``) whose SITL is gone is refused the same way (a
+  freed ``/dev/pts/N`` may belong to another process by now);
 - publishes every chunk read on ``raw.mavlink`` (source and receive time = the read time), the
   samples :class:`~groundstation.acquisition.decoders.MavlinkStreamDecoder` makes of it,
   ``link.health`` and ``status`` every ``health_period_s``;
@@ -18,6 +26,10 @@
   sends a stale backlog. 200 ms = the pilot's input stale window: a command may spend in transit
   at most as long as its input was allowed to age (10-minute soak on a loaded 2-core machine:
   1 of 15006 commands took > 100 ms from tick to link);
+- after a restart, measures the vehicle data it missed: the firmware-time gap between the last
+  IMU sample the previous incarnation published (kept current in ``link.state``, a memory-mapped
+  file of the session directory) and the first one it publishes (``restart_gap_s`` in its
+  status, and a ``log`` warning);
 - reports unplug/replug (link events) on ``log`` and ``status``; bad bytes are counted by the
   decoder, never raised. SIGINT/SIGTERM stop it cleanly (exit 0).
 
@@ -29,6 +41,8 @@ from __future__ import annotations
 
 import argparse
 import collections
+import fcntl
+import os
 import sys
 import threading
 import time
@@ -37,8 +51,9 @@ from collections.abc import Sequence
 import numpy as np
 import zmq
 
-from firmware_bridge.errors import BridgeError
+from firmware_bridge.errors import BridgeError, LinkError
 from firmware_bridge.link import Link, open_link
+from firmware_bridge.link.base import parse_uri
 from firmware_bridge.mavlink import MavlinkCodec
 from firmware_bridge.mavlink.messages import (
     CommandAck,
@@ -49,20 +64,19 @@ from firmware_bridge.mavlink.messages import (
     Timesync,
 )
 from groundstation.acquisition.decoders import MavlinkStreamDecoder
-from groundstation.acquisition.settings import AcquisitionSettings
-from groundstation.bus.errors import BusTimeoutError
-from groundstation.bus.pubsub import Publisher, Subscriber
+from groundstation.bus.pubsub import Subscriber
+from groundstation.config import Config
 from groundstation.runtime.session import (
-    RateCounter,
     Session,
-    StopSignals,
     add_session_arguments,
-    load_settings,
-    publish_log,
     session_from_args,
+    worker_config,
 )
+from groundstation.runtime.statefile import StateFile
+from groundstation.runtime.worker import Worker, worker_main
 
-DATA_TOPICS = ("raw.mavlink", "samples.imu", "samples.attitude", "samples.pose")
+SAMPLE_TOPICS = ("samples.imu", "samples.attitude", "samples.pose")
+DATA_TOPICS = ("raw.mavlink", *SAMPLE_TOPICS)
 TOPICS = (*DATA_TOPICS, "link.health", "status", "log")
 HIGHRES_IMU_ID, ATTITUDE_QUATERNION_ID = 105, 31
 MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, MAV_STATE_ACTIVE = 6, 8, 4
@@ -70,6 +84,9 @@ _READ_TIMEOUT_NS = 20_000_000
 #: Default largest age (ns) of a ``pilot.command`` the link still forwards (tick -> write).
 MAX_COMMAND_AGE_NS = 200_000_000
 _COMMAND_POLL_MS = 50
+_REOPEN_S = 1.0
+#: Longest ready handshake of a restarted link (its subscribers only reconnect), seconds.
+RESTART_WAIT_S = 1.5
 _REPORTED_EVENTS = {
     "disconnected": "warning",
     "reconnect_failed": "warning",
@@ -79,45 +96,89 @@ _REPORTED_EVENTS = {
 }
 
 
-class LinkProcess:
+def check_sitl_link(uri: str) -> None:
+    """Refuse a ``serial://`` path that is a SITL pseudo-terminal link whose SITL is gone.
+
+    ``groundstation sitl --link pty:/path`` makes ``/path`` a symlink to its ``/dev/pts/N`` and
+    holds a lock on ``/path.lock`` while it runs. When that lock is free the SITL has exited and
+    the ``/dev/pts/N`` it pointed to may have been handed to another process.
+
+    Raises
+    ------
+    LinkError
+        The link's SITL is gone.
+    """
+    p = parse_uri(uri)
+    if p.scheme != "serial" or not p.path or not os.path.islink(p.path):
+        return
+    lock = p.path + ".lock"
+    if not os.path.realpath(p.path).startswith("/dev/pts/") or not os.path.exists(lock):
+        return
+    try:
+        fd = os.open(lock, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return  # the SITL holds it: alive
+    finally:
+        os.close(fd)
+    raise LinkError(
+        f"{p.path} is the link of a SITL that is no longer running (its pseudo-terminal "
+        f"{os.path.realpath(p.path)} may belong to another process now)",
+        hint="start the SITL again: groundstation sitl --link pty:" + p.path,
+    )
+
+
+class LinkProcess(Worker):
     """The loop of the link process (see the module docstring)."""
 
     def __init__(
         self,
         session: Session,
         link_uri: str,
-        settings: AcquisitionSettings,
+        config: Config,
         *,
         name: str = "link",
         wait_subscribers: int = 1,
         context: zmq.Context | None = None,
         max_command_age_ns: int = MAX_COMMAND_AGE_NS,
+        wait_samples: int | None = None,
     ) -> None:
-        self.session, self.uri, self.settings, self.name = session, link_uri, settings, name
+        parse_uri(link_uri)  # a malformed URI is a configuration error, not a missing device
+        super().__init__(session, config, name=name, topics=TOPICS, context=context)
+        self.uri = link_uri
+        self.settings = s = config.acquisition
         self.max_command_age_ns = int(max_command_age_ns)
         self.wait_subscribers = wait_subscribers
-        self.ctx = context or zmq.Context()
-        self.pub = Publisher(topics=TOPICS, context=self.ctx, **session.publisher_kwargs(name))
+        self.wait_samples = wait_subscribers if wait_samples is None else wait_samples
         self.sub = Subscriber(
             session.subscribe_endpoints(exclude=[name]), ["pilot.command"], context=self.ctx
         )
-        s = settings
         self.decoder = MavlinkStreamDecoder(
             s.timesync_window, int(s.timesync_max_rtt_ms * 1e6), int(s.mocap_latency_ms * 1e6)
         )
         self.tx = MavlinkCodec(s.system_id, s.component_id)
         self.link: Link | None = None
-        self.rates = RateCounter()
-        self.state = "starting"
+        self.device_error: str | None = None
         self.manual_sent = 0
         self.commands_received = 0
         self.commands_stale = 0
         self.commands_rejected = 0
         self.acks: list[tuple[int, int]] = []
+        self.last_rx_ns: int | None = None
+        self.last_imu_source_ns: int | None = None
+        self.restart_gap_s: float | None = None
+        self._previous_imu_ns: int | None = None
+        self._state: StateFile | None = None
         self._tx_lock = threading.Lock()
         self._warnings: collections.deque[str] = collections.deque(maxlen=100)
         self._cmd_stop = threading.Event()
         self._cmd_thread: threading.Thread | None = None
+        self._reopen_at = 0.0
+        self._next_ping = self._next_beat = 0
+        self.status_period_ns = int(s.health_period_s * 1e9)  # link.health rides with status
 
     # -- sending -----------------------------------------------------------------------------
     def _send(self, record: Record) -> None:
@@ -185,6 +246,7 @@ class LinkProcess:
     # -- receiving ---------------------------------------------------------------------------
     def on_chunk(self, data: bytes, recv_ns: int) -> None:
         """Publish one chunk read at ``recv_ns`` and everything decoded from it."""
+        self.last_rx_ns = recv_ns
         self.pub.publish(
             "raw.mavlink",
             {"link": self.uri},
@@ -198,6 +260,8 @@ class LinkProcess:
         for d in samples:
             self.pub.publish(d.topic, d.payload, d.arrays, source_ns=d.source_ns, recv_ns=d.recv_ns)
             self.rates.add(d.topic)
+            if d.topic == "samples.imu":
+                self._imu(int(d.source_ns))
         for rec in records:
             if isinstance(rec, Timesync) and rec.tc1 == 0 and rec.system_id != self.tx.system_id:
                 self._send(Timesync(time.monotonic_ns(), rec.ts1))  # the vehicle syncs to us
@@ -206,27 +270,120 @@ class LinkProcess:
         if not heard_before and self.decoder.vehicle is not None:
             self.request_streams()  # the vehicle may have booted after our first request
 
+    def _imu(self, source_ns: int) -> None:
+        if self.last_imu_source_ns is None and self._previous_imu_ns is not None:
+            gap = (source_ns - self._previous_imu_ns) / 1e9
+            if 0 <= gap < 3600:  # same vehicle clock (a rebooted vehicle restarts its clock)
+                self.restart_gap_s = round(gap, 4)
+                self.log("info" if gap < 0.05 else "warning",
+                         f"link restart: first vehicle IMU sample {gap:.3f} s (firmware time) "
+                         "after the last one published before the restart")  # fmt: skip
+        self.last_imu_source_ns = source_ns
+        if self._state is not None:
+            self._state.set(source_ns)
+
     def _report_events(self) -> None:
         assert self.link is not None
         for ev in self.link.poll_events():
             level = _REPORTED_EVENTS.get(ev.kind)
             if level is None:
                 continue
-            publish_log(self.pub, self.name, level, f"link {ev.kind}: {ev.detail}")
+            self.log(level, f"link {ev.kind}: {ev.detail}")
             if ev.kind == "disconnected":
                 self.state = "disconnected"
-                self._status()
+                self.publish_status()
             elif ev.kind == "reconnected":
                 self.state = "running"
                 self.request_streams()
-                self._status()
+                self.publish_status()
 
     def _connected(self) -> bool:
-        return bool(getattr(self.link, "connected", True)) and self.state != "disconnected"
+        return (
+            self.link is not None
+            and bool(getattr(self.link, "connected", True))
+            and self.state != "disconnected"
+        )
 
-    def _status(self, now_ns: int | None = None) -> None:
+    # -- state across restarts -----------------------------------------------------------------
+    def _load_state(self) -> None:
+        try:
+            self._state = StateFile(os.path.join(self.session.directory, f"{self.name}.state"), 1)
+        except OSError:
+            return
+        last = self._state.get()[0]
+        self._previous_imu_ns = last if last > 0 else None
+
+    # -- worker hooks --------------------------------------------------------------------------
+    def setup(self) -> int | None:
+        self._load_state()
+        self._try_open(request=False)  # first: the port buffers what arrives meanwhile
+        # a restart waits briefly (its subscribers reconnect within ~0.1 s): the port's
+        # buffers hold the vehicle's bytes for a few seconds only
+        limit = RESTART_WAIT_S if self.incarnation > 0 else None
+        if self.wait_ready(self.wait_subscribers, DATA_TOPICS, limit):
+            self.wait_ready(self.wait_samples, SAMPLE_TOPICS, limit)  # monitor, detector
+        self._cmd_thread = threading.Thread(
+            target=self._command_loop, name="pilot-commands", daemon=True
+        )
+        self._cmd_thread.start()
+        if self.link is not None:
+            self.request_streams()
+        return None
+
+    def _try_open(self, request: bool = True) -> None:
+        self._reopen_at = time.monotonic() + _REOPEN_S
+        try:
+            check_sitl_link(self.uri)
+            link = open_link(self.uri)
+        except BridgeError as exc:
+            if self.device_error != exc.message:
+                self.log("error", f"cannot open {self.uri}: {exc.message}", exc.hint)
+            self.device_error = exc.message
+            self.state = "no_device"
+            return
+        if self.device_error is not None:
+            self.log("info", f"opened {self.uri}")
+        self.device_error = None
+        with self._tx_lock:
+            self.link = link
+        self.state = "running"
+        now = time.monotonic_ns()
+        self._next_ping = self._next_beat = now
+        if request:
+            self.request_streams()
+
+    def step(self) -> None:
+        if self.link is None:
+            if time.monotonic() >= self._reopen_at:
+                self._try_open()
+            if self.link is None:
+                time.sleep(0.05)
+                return
+        s, link = self.settings, self.link
+        now = time.monotonic_ns()
+        if now >= self._next_ping:
+            self._send(Timesync(0, time.monotonic_ns()))
+            self._next_ping = max(self._next_ping + int(s.timesync_period_s * 1e9), now)
+        if now >= self._next_beat:
+            self._send(Heartbeat(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE))
+            self._next_beat = max(self._next_beat + 1_000_000_000, now)
+        wait = min(_READ_TIMEOUT_NS, self._next_ping - now, self._next_beat - now,
+                   self._next_status - now)  # fmt: skip
+        data = link.read(max(0, wait) / 1e9)
+        recv_ns = time.monotonic_ns()
+        if data:
+            self.on_chunk(data, recv_ns)
+        while self._warnings:
+            self.log("warning", self._warnings.popleft())
+        self._report_events()
+
+    def publish_status(self, now_ns: int | None = None) -> None:
+        """``link.health`` and ``status`` (the health first: the status line reads both)."""
         now_ns = time.monotonic_ns() if now_ns is None else now_ns
         self.pub.publish("link.health", self.decoder.health_payload(self._connected()))
+        super().publish_status(now_ns)
+
+    def status_topics(self, now_ns: int) -> dict:
         topics = self.rates.snapshot(now_ns)
         topics["pilot.command"] = {
             "received": self.commands_received,
@@ -234,77 +391,25 @@ class LinkProcess:
             "stale_dropped": self.commands_stale,
             "rejected": self.commands_rejected,
         }
-        self.pub.publish(
-            "status",
-            {
-                "process": self.name,
-                "state": self.state,
-                "topics": topics,
-                "text": f"{self.uri}: {self.decoder.health.summary()}",
-            },
-        )
+        st = self.decoder.codec.stats
+        topics["link"] = {
+            "uri": self.uri,
+            "connected": self._connected(),
+            "device_error": self.device_error,
+            "lost_frames": int(st.lost),
+            "rx_messages": int(self.decoder.rx_messages),
+            "silent_s": None if self.last_rx_ns is None
+            else round((now_ns - self.last_rx_ns) / 1e9, 3),
+            "restart_gap_s": self.restart_gap_s,
+        }  # fmt: skip
+        return topics
 
-    # -- loop --------------------------------------------------------------------------------
-    def run(self, stop: StopSignals | None = None, max_s: float | None = None) -> int:
-        """Run until SIGINT/SIGTERM (or ``max_s`` seconds); returns the exit code."""
-        stop = stop if stop is not None else StopSignals()
-        try:
-            try:
-                self.pub.wait_for_subscribers(
-                    self.wait_subscribers, DATA_TOPICS, self.settings.subscriber_timeout_s
-                )
-            except BusTimeoutError as exc:
-                publish_log(self.pub, self.name, "warning", f"starting anyway: {exc.message}")
-            try:
-                self.link = open_link(self.uri)
-            except BridgeError as exc:
-                self.state = "failed"
-                publish_log(self.pub, self.name, "error", exc.message, exc.hint)
-                self.pub.publish(
-                    "status",
-                    {"process": self.name, "state": "failed", "topics": {}, "text": exc.message},
-                )
-                return 3
-            self.state = "running"
-            self._cmd_thread = threading.Thread(
-                target=self._command_loop, name="pilot-commands", daemon=True
-            )
-            self._cmd_thread.start()
-            self._loop(stop, max_s)
-            return 0
-        finally:
-            self.close()
+    def status_text(self) -> str:
+        if self.device_error is not None:
+            return f"{self.uri}: NO DEVICE: {self.device_error}"
+        return f"{self.uri}: {self.decoder.health.summary()}"
 
-    def _loop(self, stop: StopSignals, max_s: float | None) -> None:
-        s = self.settings
-        ping_ns, health_ns = int(s.timesync_period_s * 1e9), int(s.health_period_s * 1e9)
-        t0 = now = time.monotonic_ns()
-        end = None if max_s is None else t0 + int(max_s * 1e9)
-        self.request_streams()
-        next_ping, next_beat, next_health = now, now, now + health_ns
-        link = self.link
-        assert link is not None
-        while not stop and (end is None or now < end):
-            if now >= next_ping:
-                self._send(Timesync(0, time.monotonic_ns()))
-                next_ping = max(next_ping + ping_ns, now)
-            if now >= next_beat:
-                self._send(Heartbeat(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE))
-                next_beat = max(next_beat + 1_000_000_000, now)
-            if now >= next_health:
-                self._status(now)
-                next_health = max(next_health + health_ns, now)
-            wait = min(_READ_TIMEOUT_NS, next_ping - now, next_beat - now, next_health - now)
-            data = link.read(max(0, wait) / 1e9)
-            recv_ns = time.monotonic_ns()
-            if data:
-                self.on_chunk(data, recv_ns)
-            while self._warnings:
-                publish_log(self.pub, self.name, "warning", self._warnings.popleft())
-            self._report_events()
-            now = time.monotonic_ns()
-
-    def close(self) -> None:
+    def teardown(self) -> None:
         self._cmd_stop.set()
         if self._cmd_thread is not None:
             self._cmd_thread.join(2.0)
@@ -312,14 +417,9 @@ class LinkProcess:
             with self._tx_lock:
                 link, self.link = self.link, None
             link.close()
-        self.state = "stopped"
-        try:
-            self._status()
-        except Exception:  # noqa: BLE001 - best effort at shutdown
-            pass
+        if self._state is not None:
+            self._state.close()
         self.sub.close()
-        self.pub.close()
-        self.ctx.term()
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -328,6 +428,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--link", required=True, help="serial:///dev/ttyUSB0?baud=921600 or udp://...")
     p.add_argument("--name", default="link", help="process name (its endpoint in the session)")
     p.add_argument("--wait-subscribers", type=int, default=1, help="subscribers to wait for")
+    p.add_argument("--wait-samples", type=int, default=None,
+                   help="sample-topic subscribers to wait for (default: the same)")  # fmt: skip
     p.add_argument("--max-s", type=float, default=None, help="stop after this many seconds")
     p.add_argument(
         "--max-command-age-ms",
@@ -340,17 +442,19 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point (see the module docstring)."""
-    args = _parser().parse_args(argv)
-    stop = StopSignals()
-    proc = LinkProcess(
-        session_from_args(args),
-        args.link,
-        load_settings(args.config, args.set),
-        name=args.name,
-        wait_subscribers=args.wait_subscribers,
-        max_command_age_ns=int(args.max_command_age_ms * 1e6),
-    )
-    return proc.run(stop, args.max_s)
+
+    def build(args: argparse.Namespace) -> LinkProcess:
+        return LinkProcess(
+            session_from_args(args),
+            args.link,
+            worker_config(args),
+            name=args.name,
+            wait_subscribers=args.wait_subscribers,
+            max_command_age_ns=int(args.max_command_age_ms * 1e6),
+            wait_samples=args.wait_samples,
+        )
+
+    return worker_main(argv, _parser(), build)
 
 
 if __name__ == "__main__":

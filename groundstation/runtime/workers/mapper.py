@@ -1,71 +1,89 @@
-"""The mapper process: observations in (one thread), refits on the data clock (main thread).
+"""The mapper process: observations in, refits in a child process, meshes out; never stalls.
 
 Command line (started by the supervisor, with ``OPENBLAS_NUM_THREADS=1`` in its environment)::
 
     python -m groundstation.runtime.workers.mapper --session ID [--session-root /tmp]
         --publishers detector[,...]            # who publishes observations
         [--name mapper] [--recording SESSION.mcap] [--wait-subscribers 0]
-        [--config FILE] [--set mapper.KEY=VALUE --set mapping.KEY=VALUE ...]
 
-- A receiver thread owns the SUB socket (``observations`` and ``log`` of every other publisher
-  of the session) and appends decoded observations to a queue; it never waits for a refit, so
-  the mapper never holds back the detector or acquisition.
-- The main thread drains the queue into :class:`~groundstation.mapping.mapper.Mapper`, asks
-  ``due()`` and refits with *all* observations received so far: a refit slower than the
-  schedule simply covers more data next time (skip ahead). After each refit it publishes
-  ``mesh`` (when the fit produced a new one), ``mapper.fit`` (ids, u, flags, ``reliable``,
-  ``reasons``, ``data_ns``, ``lag_s``) and ``status`` (``lag_s`` = newest data time received
-  minus the fit's data time; ``state`` "fitting"/"idle"/"unreliable").
-- ``--recording PATH``: on start, the ``observations`` channel of the session recording (the
-  recorder's MCAP, still being written: read up to its last complete chunk) is reloaded first
-  (``Mapper.restore``); ids seen again on the bus are ignored. The recorder closes a chunk at
-  least every second, so what was published between the last complete chunk and this
-  process subscribing is in the file a moment later: the recording is read again
-  ``REFILL_AFTER_S`` after start, and every observation the mapper lacks is added. A restarted
-  mapper thus loses nothing the recorder got.
-- When the detector's ``log`` "detector finished ..." arrives (end of a replay), it refits
-  once more on everything and publishes ``log`` "mapper finished: fit N".
-- BLAS is limited to one thread (threadpoolctl) in this process.
+Two processes, so that the shell always answers:
+
+- **The shell** (this process, one thread) owns the SUB socket (``observations`` and ``log`` of
+  every other publisher), keeps every observation received (by id), publishes, and answers
+  stop signals within a loop turn (<= 50 ms): on SIGINT/SIGTERM it kills the fitting child at
+  once, whatever the fit is doing (a fit is pure computation; nothing is lost by killing it).
+- **The fitting child** (``multiprocessing`` spawn; parent-death signal SIGKILL, one BLAS thread)
+  holds :class:`~groundstation.mapping.mapper.Mapper`: it adds the observations the shell sends,
+  asks ``due()`` on the data clock and refits with *all* observations received so far, then
+  reports the fit and goes idle. The shell sends new observations only while the child is idle,
+  in one batch with everything that arrived during the fit: under CPU starvation refits are
+  skipped, never queued, and each mesh is the newest fit's (skip ahead). ``lag_s`` = newest data
+  time received minus the fit's data time. A child that dies is started again with every
+  observation held.
+
+After each refit the shell publishes ``mesh`` (when the fit produced a new one), ``mapper.fit``
+(ids, u, flags, ``reliable``, ``reasons``, ``data_ns``, ``lag_s``) and ``status`` (state
+``fitting`` with the fit's running time, ``idle``, ``unreliable``).
+
+Restart (``--recording PATH``): a restarted mapper first reads every observation the session's
+recording holds. From then on it repairs holes: when an observation arrives whose sequence
+number skips some on its detector stream (published while the mapper was down or starting, not
+yet on disk when it read the recording), the missing ones are read from the recording as soon
+as the recorder has written them (it closes a chunk at least once a second), so the rebuilt map
+holds every observation published while it was down (ids seen twice are ignored). What the
+recording does not hold within ``REPAIR_WAIT_S`` is counted as lost (status ``catchup.lost``).
+
+When the detector's ``log`` "detector finished ..." arrives (end of a replay), the child refits
+once more on everything and the shell publishes ``log`` "mapper finished: fit N".
 """
 
 from __future__ import annotations
 
 import argparse
-import queue
+import ctypes
+import multiprocessing
+import os
+import signal
 import sys
-import threading
 import time
 import warnings
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zmq
 
-from groundstation.bus.errors import BusTimeoutError
-from groundstation.bus.pubsub import Publisher, Subscriber
-from groundstation.config import Config, load_config
+from groundstation.bus.pubsub import Subscriber
+from groundstation.config import Config, to_toml
 from groundstation.contact.detector import Observation
 from groundstation.contact.stage import observation_from_envelope
-from groundstation.mapping.mapper import FitResult, Mapper
+from groundstation.runtime.catchup import GapPlan, catch_up, read_recorded
 from groundstation.runtime.session import (
     Session,
-    StopSignals,
     add_session_arguments,
-    publish_log,
     session_from_args,
+    worker_config,
 )
+from groundstation.runtime.worker import Worker, worker_main
 from groundstation.runtime.workers.detector import DETECTOR_FINISHED
+
+if TYPE_CHECKING:  # the shell never imports the mapping core: the fitting child does
+    from groundstation.mapping.mapper import FitResult
 
 TOPICS = ("mesh", "mapper.fit", "status", "log")
 MAPPER_FINISHED = "mapper finished"
-#: Seconds after start at which the recording is read again (``--recording``).
-REFILL_AFTER_S = (3.0, 8.0, 15.0)
+_RECV_MS = 20
+_BATCH = 500
+#: Seconds a hole in an observation stream is looked for in the recording before it counts as
+#: lost, and how often it is looked for.
+REPAIR_WAIT_S = 10.0
+_REPAIR_EVERY_S = 0.5
 
 
 def load_recorded_observations(path: str) -> tuple[list[Observation], int]:
-    """Observations recorded on the ``observations`` channel of ``path`` (truncated files are
-    read up to their last complete chunk); returns (observations, messages skipped as bad)."""
-    from groundstation.acquisition.reader import open_recording
+    """Observations recorded on the ``observations`` channel of the session at ``path`` (every
+    segment; cut ones read up to their last complete chunk); returns (observations, bad)."""
+    from groundstation.acquisition.segments import open_session
     from groundstation.bus.envelope import from_bytes
     from groundstation.bus.errors import BusError
 
@@ -73,7 +91,7 @@ def load_recorded_observations(path: str) -> tuple[list[Observation], int]:
     bad = 0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # TruncatedRecordingWarning: expected after a crash
-        with open_recording(path) as rec:
+        with open_session(path) as rec:
             for msg in rec.messages("observations"):
                 try:
                     out.append(observation_from_envelope(from_bytes(msg.data)))
@@ -82,8 +100,90 @@ def load_recorded_observations(path: str) -> tuple[list[Observation], int]:
     return out, bad
 
 
-class MapperProcess:
-    """The mapper process (see the module docstring)."""
+# -- the fitting child -----------------------------------------------------------------------------
+
+
+def _die_with(parent: int) -> None:
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent:
+        os._exit(75)
+
+
+def fit_loop(conn: Any, config_text: str, parent: int) -> None:
+    """The fitting child: add observations, refit when due, report (see the module docstring)."""
+    import tomllib
+
+    from threadpoolctl import threadpool_limits
+
+    from groundstation.config import load_config
+    from groundstation.mapping.mapper import Mapper
+
+    _die_with(parent)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the shell decides when the child ends
+    threadpool_limits(1)
+    config = load_config(base=tomllib.loads(config_text))
+    mapper = Mapper.from_config(config)
+    conn.send(("idle", 0, 0))
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg[0] != "add":
+            return
+        _, batch, final = msg
+        mapper.add(batch)
+        if mapper.due() or (final and mapper.pending and mapper.ready()):
+            conn.send(("fitting", mapper.fit_index + 1, len(mapper)))
+            conn.send(("fit", mapper.refit()))
+        if final:
+            conn.send(("finished", mapper.fit_index))
+        conn.send(("idle", len(mapper), mapper.pending))
+
+
+class FitChild:
+    """The shell's handle on the fitting child process."""
+
+    def __init__(self, config: Config) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self.conn, child_end = ctx.Pipe()
+        self.proc = ctx.Process(
+            target=fit_loop, args=(child_end, to_toml(config), os.getpid()), daemon=True,
+            name="mapper-fit",
+        )  # fmt: skip
+        self.proc.start()
+        child_end.close()
+        self.idle = False
+        self.fitting_since: float | None = None
+
+    def alive(self) -> bool:
+        return self.proc.is_alive()
+
+    def messages(self) -> list[tuple]:
+        out = []
+        try:
+            while self.conn.poll(0):
+                out.append(self.conn.recv())
+        except (EOFError, OSError):
+            pass
+        return out
+
+    def send(self, batch: list[Observation], final: bool) -> None:
+        self.conn.send(("add", batch, final))
+        self.idle = False
+
+    def kill(self) -> None:
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join(2.0)
+        self.conn.close()
+
+
+class MapperProcess(Worker):
+    """The mapper shell (see the module docstring)."""
 
     def __init__(
         self,
@@ -95,66 +195,182 @@ class MapperProcess:
         wait_subscribers: int = 0,
         context: zmq.Context | None = None,
     ) -> None:
-        self.session, self.config, self.name = session, config, name
+        super().__init__(session, config, name=name, topics=TOPICS, context=context)
         self.recording, self.wait_subscribers = recording, wait_subscribers
-        self.ctx = context or zmq.Context()
-        self.pub = Publisher(topics=TOPICS, context=self.ctx, **session.publisher_kwargs(name))
-        self.mapper = Mapper.from_config(config)
-        self.inbox: queue.Queue = queue.Queue()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self.sub: Subscriber | None = None
+        self.child: FitChild | None = None
+        self.held: dict[int, Observation] = {}
+        self.unsent: list[Observation] = []
+        self.data_ns: int | None = None
         self.bad = 0
-        self.gaps = 0
+        self.final_pending = False
         self.finished_seen = False
-        self._end_marker = False
-        self.state = "starting"
         self.last_fit: FitResult | None = None
+        self.fits = 0
+        self.child_restarts = 0
         self.restored = 0
+        self.catchup: dict = {}
+        self.have: dict[int, int] = {}  # newest sequence number per detector origin
+        self.holes: dict[int, set[int]] = {}  # missing sequence numbers per origin
+        self.hole_since: float | None = None
+        self._hole_ns = 0
+        self._grow = None  # GrowingSession of the recording, for repairs
+        self._next_repair = 0.0
+        self.repaired = 0
+        self.lost = 0
 
-    # -- receiver thread -----------------------------------------------------------------------
-    def _receive(self) -> None:
-        sub = Subscriber(
+    # -- observations --------------------------------------------------------------------------
+    def add(self, observations: Sequence[Observation]) -> int:
+        """Keep new observations (by id) and queue them for the child; returns how many new."""
+        n = 0
+        for o in observations:
+            if o.id in self.held:
+                continue
+            self.held[o.id] = o
+            self.unsent.append(o)
+            t = int(o.t_ns)
+            self.data_ns = t if self.data_ns is None else max(self.data_ns, t)
+            n += 1
+        return n
+
+    def handle(self, env, live: bool = True) -> None:
+        if env.topic == "log":
+            if env.payload.get("message", "").startswith(DETECTOR_FINISHED):
+                self.final_pending = True
+            return
+        origin, seq = int(env.header.origin), int(env.header.seq)
+        have = self.have.get(origin, -1)
+        if live and self.recording is not None and seq > have + 1:
+            self.holes.setdefault(origin, set()).update(range(have + 1, seq))
+            if self.hole_since is None:
+                self.hole_since, self._hole_ns = time.monotonic(), time.monotonic_ns()
+        if seq > have:
+            self.have[origin] = seq
+        self.holes.get(origin, set()).discard(seq)
+        try:
+            self.add([observation_from_envelope(env)])
+        except (KeyError, ValueError, TypeError):
+            self.bad += 1
+
+    def _repair(self) -> None:
+        """Read the holes of the observation streams from the recording (see the module
+        docstring)."""
+        now = time.monotonic()
+        if not any(self.holes.values()) or now < self._next_repair:
+            return
+        self._next_repair = now + _REPAIR_EVERY_S
+        plan = GapPlan()
+        for origin, missing in self.holes.items():
+            if missing:
+                plan.consumed[("observations", origin)] = min(missing) - 1
+                plan.first_live[("observations", origin)] = max(missing) + 1
+        if self._grow is None:
+            from groundstation.acquisition.segments import GrowingSession
+
+            self._grow = GrowingSession(self.recording)
+        since = self._hole_ns - 60_000_000_000  # the missing ones were published just before
+        try:
+            found = read_recorded(self._grow, ("observations",), since, plan)
+        except Exception as exc:  # noqa: BLE001 - not on disk yet, unreadable: try again
+            found = []
+            self.log("warning", f"cannot read {self.recording} for missed observations: {exc}")
+        for env in found:
+            if int(env.header.seq) in self.holes.get(int(env.header.origin), ()):
+                self.handle(env, live=False)
+                self.repaired += 1
+        if not any(self.holes.values()):
+            self.hole_since = None
+        elif self.hole_since is not None and now - self.hole_since > REPAIR_WAIT_S:
+            n = sum(len(v) for v in self.holes.values())
+            self.lost += n
+            self.log("warning", f"{n} observation(s) not in the recording after "
+                     f"{REPAIR_WAIT_S:.0f} s: lost")  # fmt: skip
+            self.holes, self.hole_since = {}, None
+
+    # -- worker hooks --------------------------------------------------------------------------
+    def setup(self) -> int | None:
+        self.child = FitChild(self.config)
+        self.sub = Subscriber(
             self.session.subscribe_endpoints(exclude=(self.name,)),
             ("observations", "log"),
             context=self.ctx,
         )
-        try:
-            while not self._stop.is_set():
-                env = sub.recv(100)
-                if env is None:
-                    continue
-                if env.topic == "log":
-                    if env.payload.get("message", "").startswith(DETECTOR_FINISHED):
-                        self.inbox.put("finished")
-                    continue
-                try:
-                    self.inbox.put(observation_from_envelope(env))
-                except (KeyError, ValueError, TypeError):
-                    self.bad += 1
-                self.gaps = sum(s.gaps for s in sub.stats.values())
-        finally:
-            sub.close()
+        if self.recording is not None and self.incarnation > 0:
+            self._restore()
+        self.wait_ready(self.wait_subscribers, ("mapper.fit",))
+        self.state = "idle"
+        return None
 
-    def _drain(self) -> bool:
-        """Move queued observations into the mapper; True once the end marker was seen."""
-        batch, finished = [], self._end_marker
-        while True:
-            try:
-                item = self.inbox.get_nowait()
-            except queue.Empty:
-                break
-            if item == "finished":
-                finished = True
-            else:
-                batch.append(item)
-        self.mapper.add(batch)
-        self._end_marker = finished
-        return finished
+    def _restore(self) -> None:
+        self.state = "catching up"
+        self.publish_status()
+        # one read: what is not on disk yet is repaired as a hole when the next one arrives
+        res = catch_up(self.recording, ("observations",), GapPlan(), self.sub.recv,
+                       stop=self.stopping, deadline_s=0.0)  # fmt: skip
+        for env in res.recorded:
+            self.handle(env, live=False)
+        self.restored = len(self.held)
+        for env in res.live:
+            self.handle(env)  # a hole before them is repaired from the recording later
+        self.catchup = {"recorded": len(res.recorded), "live_buffered": len(res.live),
+                        "reads": res.reads, "seconds": round(res.waited_s, 3),
+                        "error": res.error}  # fmt: skip
+        err = f"; recording unreadable: {res.error}" if res.error else ""
+        self.log("warning" if res.error else "info",
+                 f"restored {self.restored} observations from {self.recording} in "
+                 f"{res.waited_s:.1f} s{err}")  # fmt: skip
+
+    def step(self) -> None:
+        sub = self.sub
+        env = sub.recv(_RECV_MS)
+        n = 0
+        while env is not None:
+            self.handle(env)
+            n += 1
+            env = sub.recv(0) if n < _BATCH else None
+        if self.recording is not None:
+            self._repair()
+        self._tend_child()
+
+    def _tend_child(self) -> None:
+        child = self.child
+        for msg in child.messages():
+            kind = msg[0]
+            if kind == "idle":
+                child.idle, child.fitting_since = True, None
+                if self.state == "fitting":
+                    self.state = (
+                        "idle"
+                        if self.last_fit is None or self.last_fit.reliable
+                        else ("unreliable")
+                    )
+            elif kind == "fitting":
+                self.state, child.fitting_since = "fitting", time.monotonic()
+            elif kind == "fit":
+                self.publish_fit(msg[1])
+            elif kind == "finished" and not self.finished_seen:
+                self.finished_seen = True
+                self.log("info", f"{MAPPER_FINISHED}: fit {msg[1]}")
+        if not child.alive():
+            self.child_restarts += 1
+            self.log("warning", f"fitting process exited ({child.proc.exitcode}); restarting it "
+                     f"with the {len(self.held)} observations held")  # fmt: skip
+            child.kill()
+            self.child = FitChild(self.config)
+            self.unsent = list(self.held.values())
+            return
+        if child.idle and (self.unsent or (self.final_pending and not self.finished_seen)):
+            batch, self.unsent = self.unsent, []
+            child.send(batch, self.final_pending)
+            if self.final_pending:
+                self.final_pending = False
 
     # -- publishing ----------------------------------------------------------------------------
     def publish_fit(self, fit: FitResult) -> None:
         """``mesh`` (when new), ``mapper.fit`` and ``status`` for one refit."""
-        lag_s = max(0, (self.mapper.data_ns or fit.data_ns) - fit.data_ns) / 1e9
+        self.last_fit = fit
+        self.fits += 1
+        lag_s = max(0, (self.data_ns or fit.data_ns) - fit.data_ns) / 1e9
         if fit.reliable and fit.mesh is not None:
             m = fit.mesh
             std = m.std if m.std is not None else np.zeros(len(m.vertices))
@@ -185,116 +401,42 @@ class MapperProcess:
         )
         if not fit.reliable:
             text = f"fit {fit.fit_index} unreliable ({', '.join(fit.reasons)}); kept last mesh"
-            publish_log(self.pub, self.name, "warning", text)
-        self._status(lag_s)
+            self.log("warning", text)
+        self.publish_status()
 
-    def _status(self, lag_s: float = 0.0) -> None:
+    def status_topics(self, now_ns: int) -> dict:
+        fit, child = self.last_fit, self.child
+        lag_s = 0.0 if fit is None else max(0, (self.data_ns or fit.data_ns) - fit.data_ns) / 1e9
+        busy = None
+        if child is not None and child.fitting_since is not None:
+            busy = round(time.monotonic() - child.fitting_since, 3)
+        topics: dict[str, Any] = {
+            "observations": {"count": len(self.held), "bad": self.bad,
+                             "pending": len(self.unsent),
+                             "gaps": 0 if self.sub is None else sum(self.sub.gaps.values())},
+            "mapper": {"fits": self.fits, "fit_index": None if fit is None else fit.fit_index,
+                       "lag_s": round(lag_s, 3),
+                       "reliable": None if fit is None else fit.reliable,
+                       "fitting_s": busy, "child_restarts": self.child_restarts,
+                       "refit_period_s": self.config.mapper.refit_period_s},
+        }  # fmt: skip
+        if self.catchup or self.repaired or self.lost:
+            topics["catchup"] = {**self.catchup, "repaired": self.repaired,
+                                 "missing": sum(len(v) for v in self.holes.values()),
+                                 "lost": self.lost + self.catchup.get("lost", 0)}  # fmt: skip
+        return topics
+
+    def status_text(self) -> str:
         fit = self.last_fit
-        self.pub.publish(
-            "status",
-            {
-                "process": self.name,
-                "state": self.state,
-                "topics": {
-                    "observations": {
-                        "count": len(self.mapper),
-                        "gaps": self.gaps,
-                        "bad": self.bad,
-                        "pending": self.mapper.pending,
-                    },
-                    "mapper": {
-                        "fits": self.mapper.fit_index + 1,
-                        "lag_s": round(lag_s, 3),
-                        "reliable": None if fit is None else fit.reliable,
-                    },
-                },  # fmt: skip
-                "text": f"{len(self.mapper)} observations, fit {self.mapper.fit_index}, "
-                f"lag {lag_s:.2f} s",
-            },
-        )
+        return f"{len(self.held)} observations, fit {-1 if fit is None else fit.fit_index}"
 
-    def refit(self) -> FitResult:
-        self.state = "fitting"
-        fit = self.mapper.refit()
-        self.last_fit = fit
-        self._drain()  # what arrived meanwhile counts towards the lag
-        self.state = "idle" if fit.reliable else "unreliable"
-        self.publish_fit(fit)
-        return fit
-
-    def restore(self, first: bool) -> int:
-        """Add the recording's observations the mapper lacks; returns how many were new."""
-        try:
-            obs, bad = load_recorded_observations(self.recording)
-        except Exception as exc:  # noqa: BLE001 - a bad recording must not stop us
-            publish_log(self.pub, self.name, "warning", f"cannot restore: {exc}")
-            return 0
-        new = self.mapper.add(obs)
-        if first or new:
-            what = "restored" if first else "recovered"
-            text = f"{what} {new} observations from {self.recording} ({bad} bad)"
-            publish_log(self.pub, self.name, "info", text)
-        self.restored += new
-        return new
-
-    # -- main loop -----------------------------------------------------------------------------
-    def run(self, stop: StopSignals | None = None) -> int:
-        """Run until SIGINT/SIGTERM; returns the exit code."""
-        stop = stop if stop is not None else StopSignals()
-        from threadpoolctl import threadpool_limits
-
-        limits = threadpool_limits(1)
-        start = time.monotonic()
-        refills = list(REFILL_AFTER_S) if self.recording else []
-        try:
-            if self.recording:
-                self.restore(first=True)
-            self._thread = threading.Thread(target=self._receive, name="mapper-rx", daemon=True)
-            self._thread.start()
-            if self.wait_subscribers > 0:
-                try:
-                    self.pub.wait_for_subscribers(
-                        self.wait_subscribers,
-                        ("mapper.fit",),
-                        self.config.acquisition.subscriber_timeout_s,
-                    )
-                except BusTimeoutError as exc:
-                    publish_log(self.pub, self.name, "warning", f"starting anyway: {exc.message}")
-            self.state = "idle"
-            next_status = time.monotonic()
-            while not stop:
-                if refills and time.monotonic() - start >= refills[0]:
-                    refills.pop(0)
-                    self.restore(first=False)
-                finished = self._drain()
-                if self.mapper.due():
-                    self.refit()
-                if finished and not self.finished_seen:
-                    self.finished_seen = True
-                    if self.mapper.pending and self.mapper.ready():
-                        self.refit()
-                    publish_log(
-                        self.pub, self.name, "info",
-                        f"{MAPPER_FINISHED}: fit {self.mapper.fit_index}",
-                    )  # fmt: skip
-                now = time.monotonic()
-                if now >= next_status:
-                    self._status()
-                    next_status = now + 1.0
-                time.sleep(0.02)
-            return 0
-        finally:
-            self._stop.set()
-            if self._thread is not None:
-                self._thread.join(5)
-            limits.restore_original_limits()
-            self.state = "stopped"
-            try:
-                self._status()
-            except Exception:  # noqa: BLE001 - best effort at shutdown
-                pass
-            self.pub.close()
-            self.ctx.term()
+    def teardown(self) -> None:
+        if self.child is not None:
+            self.child.kill()  # at once: a fit in progress is only computation
+        if self._grow is not None:
+            self._grow.close()
+        if self.sub is not None:
+            self.sub.close()
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -308,16 +450,17 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point (see the module docstring)."""
-    args = _parser().parse_args(argv)
-    stop = StopSignals()
-    proc = MapperProcess(
-        session_from_args(args),
-        load_config(args.config, args.set),
-        name=args.name,
-        recording=args.recording,
-        wait_subscribers=args.wait_subscribers,
-    )
-    return proc.run(stop)
+
+    def build(args: argparse.Namespace) -> MapperProcess:
+        return MapperProcess(
+            session_from_args(args),
+            worker_config(args),
+            name=args.name,
+            recording=args.recording,
+            wait_subscribers=args.wait_subscribers,
+        )
+
+    return worker_main(argv, _parser(), build)
 
 
 if __name__ == "__main__":

@@ -2,18 +2,28 @@
 
 ``python -m groundstation.runtime.workers.mocap --session ID --mocap natnet://HOST:PORT``
 
-Waits (XPUB ready handshake) for ``--wait-subscribers`` subscribers on its data topics, opens the
-socket, then publishes every datagram on ``raw.natnet`` (receive time as source and receive
-time; the configured NatNet version and Motive up axis travel in the payload so that the
-recorder keeps them as channel metadata), the poses
+Opens the socket (datagrams queue in its receive buffer from then on), waits (XPUB ready
+handshake) for ``--wait-subscribers`` subscribers on its data topics, then publishes every
+datagram on ``raw.natnet`` (receive time as source and receive time; the configured NatNet
+version and Motive up axis travel in the payload so that the recorder keeps them as channel
+metadata), the poses
 :class:`~groundstation.acquisition.decoders.NatNetStreamDecoder` makes of it on
 ``samples.pose``, and ``status`` every ``health_period_s``. Bad datagrams are counted and
-reported in the status, never raised. SIGINT/SIGTERM stop it cleanly (exit 0).
+reported in the status, never raised.
+
+A socket that cannot be opened (a wrong host or interface, a port in use) is not a crash that
+the supervisor would restart in a loop: the process stays up with state ``failed`` and the
+reason in its status (upper case on the status line), and tries again every 2 s. Its status
+also says how long no datagram has arrived (``silent_s``: a wrong host or port opens fine and
+then stays silent), and after a restart how much mocap time it missed (``restart_gap_s``,
+mocap clock, from ``mocap.state`` in the session directory). SIGINT/SIGTERM stop it cleanly
+(exit 0).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -24,55 +34,67 @@ import zmq
 from firmware_bridge.errors import BridgeError
 from firmware_bridge.frames import AxisConvention
 from firmware_bridge.link import Link, open_link
+from firmware_bridge.link.base import parse_uri
 from groundstation.acquisition.decoders import NatNetStreamDecoder
-from groundstation.acquisition.settings import AcquisitionSettings
-from groundstation.bus.errors import BusTimeoutError
-from groundstation.bus.pubsub import Publisher
+from groundstation.config import Config
 from groundstation.runtime.session import (
-    RateCounter,
     Session,
-    StopSignals,
     add_session_arguments,
-    load_settings,
-    publish_log,
     session_from_args,
+    worker_config,
 )
+from groundstation.runtime.statefile import StateFile
+from groundstation.runtime.worker import Worker, worker_main
 
 DATA_TOPICS = ("raw.natnet", "samples.pose")
 TOPICS = (*DATA_TOPICS, "status", "log")
 _READ_TIMEOUT_S = 0.05
+_REOPEN_S = 2.0
+#: Longest ready handshake of a restarted mocap process (its subscribers only reconnect), s.
+RESTART_WAIT_S = 1.5
 
 
-class MocapProcess:
+class MocapProcess(Worker):
     """The loop of the mocap process (see the module docstring)."""
 
     def __init__(
         self,
         session: Session,
         uri: str,
-        settings: AcquisitionSettings,
+        config: Config,
         *,
         name: str = "mocap",
         wait_subscribers: int = 1,
         context: zmq.Context | None = None,
+        wait_samples: int | None = None,
     ) -> None:
-        self.session, self.uri, self.settings, self.name = session, uri, settings, name
+        parse_uri(uri)  # a malformed URI is a configuration error
+        super().__init__(session, config, name=name, topics=TOPICS, context=context)
+        self.uri = uri
+        self.settings = s = config.acquisition
         self.wait_subscribers = wait_subscribers
-        self.ctx = context or zmq.Context()
-        self.pub = Publisher(topics=TOPICS, context=self.ctx, **session.publisher_kwargs(name))
+        self.wait_samples = wait_subscribers if wait_samples is None else wait_samples
         self.decoder = NatNetStreamDecoder(
-            settings.natnet_version_tuple,
-            AxisConvention(settings.motive_up, settings.quaternion_order),
-            int(settings.mocap_latency_ms * 1e6),
+            s.natnet_version_tuple,
+            AxisConvention(s.motive_up, s.quaternion_order),
+            int(s.mocap_latency_ms * 1e6),
         )
         self.link: Link | None = None
-        self.rates = RateCounter()
-        self.state = "starting"
+        self.open_error: str | None = None
+        self.opened_ns: int | None = None
+        self.last_rx_ns: int | None = None
+        self.last_pose_ns: int | None = None
+        self.restart_gap_s: float | None = None
+        self._previous_pose_ns: int | None = None
+        self._state: StateFile | None = None
         self._reported_bad = 0
+        self._reopen_at = 0.0
+        self.status_period_ns = int(s.health_period_s * 1e9)
 
     def on_datagram(self, data: bytes, recv_ns: int, sender: str) -> None:
         """Publish one datagram received at ``recv_ns`` and its poses."""
         s = self.settings
+        self.last_rx_ns = recv_ns
         self.pub.publish(
             "raw.natnet",
             {"sender": sender, "natnet_version": s.natnet_version, "motive_up": s.motive_up},
@@ -84,67 +106,103 @@ class MocapProcess:
         for d in self.decoder.feed(data, recv_ns):
             self.pub.publish(d.topic, d.payload, d.arrays, source_ns=d.source_ns, recv_ns=d.recv_ns)
             self.rates.add(d.topic)
+            if d.topic == "samples.pose":
+                self._pose(int(d.source_ns))
 
-    def _status(self, now_ns: int) -> None:
+    def _pose(self, source_ns: int) -> None:
+        if self.last_pose_ns is None and self._previous_pose_ns is not None:
+            gap = (source_ns - self._previous_pose_ns) / 1e9
+            if 0 <= gap < 3600:
+                self.restart_gap_s = round(gap, 4)
+                self.log("info" if gap < 0.05 else "warning",
+                         f"mocap restart: first pose {gap:.3f} s (mocap time) after the last one "
+                         "published before the restart")  # fmt: skip
+        self.last_pose_ns = source_ns
+        if self._state is not None:
+            self._state.set(source_ns)
+
+    # -- state across restarts -----------------------------------------------------------------
+    def _load_state(self) -> None:
+        try:
+            self._state = StateFile(os.path.join(self.session.directory, f"{self.name}.state"), 1)
+        except OSError:
+            return
+        last = self._state.get()[0]
+        self._previous_pose_ns = last if last > 0 else None
+
+    # -- worker hooks --------------------------------------------------------------------------
+    def setup(self) -> int | None:
+        self._load_state()
+        self._try_open()  # first: a restart loses only the datagrams sent while no socket was bound
+        limit = RESTART_WAIT_S if self.incarnation > 0 else None  # subscribers only reconnect
+        if self.wait_ready(self.wait_subscribers, DATA_TOPICS, limit):
+            self.wait_ready(self.wait_samples, ("samples.pose",), limit)  # monitor, detector
+        return None
+
+    def _try_open(self) -> None:
+        self._reopen_at = time.monotonic() + _REOPEN_S
+        try:
+            self.link = open_link(self.uri)
+        except BridgeError as exc:
+            if self.open_error != exc.message:
+                self.log("error", f"cannot open {self.uri}: {exc.message}", exc.hint)
+            self.open_error = exc.message
+            self.state = "failed"
+            return
+        if self.open_error is not None:
+            self.log("info", f"opened {self.uri}")
+        self.open_error = None
+        self.opened_ns = time.monotonic_ns()
+        self.state = "running"
+
+    def step(self) -> None:
+        if self.link is None:
+            if time.monotonic() >= self._reopen_at:
+                self._try_open()
+            if self.link is None:
+                time.sleep(0.05)
+                return
+        data = self.link.read(_READ_TIMEOUT_S)
+        if data:
+            now = time.monotonic_ns()
+            src = getattr(self.link, "last_source", None)
+            self.on_datagram(data, now, f"{src[0]}:{src[1]}" if src else "")
+
+    def publish_status(self, now_ns: int | None = None) -> None:
         c = self.decoder.counters
         if c.bad > self._reported_bad:
             n_new = c.bad - self._reported_bad
-            text = f"{n_new} bad NatNet datagram(s); last: {self.decoder.last_error}"
-            publish_log(self.pub, self.name, "warning", text)
+            self.log("warning", f"{n_new} bad NatNet datagram(s); last: {self.decoder.last_error}")
             self._reported_bad = c.bad
-        topics = self.rates.snapshot(now_ns)
-        topics["decoder"] = {"bad": c.bad, "nonfinite": c.nonfinite, "ignored": c.ignored}
-        self.pub.publish(
-            "status",
-            {
-                "process": self.name,
-                "state": self.state,
-                "topics": topics,
-                "text": f"{self.uri}: {self.decoder.frames} frames, {c.bad} bad",
-            },
-        )
+        super().publish_status(now_ns)
 
-    def run(self, stop: StopSignals | None = None, max_s: float | None = None) -> int:
-        """Run until SIGINT/SIGTERM (or ``max_s`` seconds); returns the exit code."""
-        stop = stop if stop is not None else StopSignals()
-        try:
-            try:
-                self.pub.wait_for_subscribers(
-                    self.wait_subscribers, DATA_TOPICS, self.settings.subscriber_timeout_s
-                )
-            except BusTimeoutError as exc:
-                publish_log(self.pub, self.name, "warning", f"starting anyway: {exc.message}")
-            try:
-                self.link = open_link(self.uri)
-            except BridgeError as exc:
-                self.state = "failed"
-                publish_log(self.pub, self.name, "error", exc.message, exc.hint)
-                return 3
-            self.state = "running"
-            period = int(self.settings.health_period_s * 1e9)
-            now = time.monotonic_ns()
-            end = None if max_s is None else now + int(max_s * 1e9)
-            next_status = now
-            while not stop and (end is None or now < end):
-                data = self.link.read(_READ_TIMEOUT_S)
-                now = time.monotonic_ns()
-                if data:
-                    src = getattr(self.link, "last_source", None)
-                    self.on_datagram(data, now, f"{src[0]}:{src[1]}" if src else "")
-                if now >= next_status:
-                    self._status(now)
-                    next_status = max(next_status + period, now)
-            return 0
-        finally:
-            if self.link is not None:
-                self.link.close()
-            self.state = "stopped"
-            try:
-                self._status(time.monotonic_ns())
-            except Exception:  # noqa: BLE001 - best effort at shutdown
-                pass
-            self.pub.close()
-            self.ctx.term()
+    def status_topics(self, now_ns: int) -> dict:
+        topics = self.rates.snapshot(now_ns)
+        c = self.decoder.counters
+        topics["decoder"] = {"bad": c.bad, "nonfinite": c.nonfinite, "ignored": c.ignored}
+        since = self.last_rx_ns if self.last_rx_ns is not None else self.opened_ns
+        topics["mocap"] = {
+            "uri": self.uri,
+            "open_error": self.open_error,
+            "frames": self.decoder.frames,
+            "silent_s": None if since is None else round((now_ns - since) / 1e9, 3),
+            "heard": self.last_rx_ns is not None,
+            "restart_gap_s": self.restart_gap_s,
+        }
+        return topics
+
+    def status_text(self) -> str:
+        if self.open_error is not None:
+            return f"{self.uri}: CANNOT OPEN: {self.open_error}"
+        c = self.decoder.counters
+        return f"{self.uri}: {self.decoder.frames} frames, {c.bad} bad"
+
+    def teardown(self) -> None:
+        if self.link is not None:
+            self.link.close()
+            self.link = None
+        if self._state is not None:
+            self._state.close()
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -155,22 +213,26 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--name", default="mocap", help="process name (its endpoint in the session)")
     p.add_argument("--wait-subscribers", type=int, default=1, help="subscribers to wait for")
+    p.add_argument("--wait-samples", type=int, default=None,
+                   help="subscribers of samples.pose to wait for (default: the same)")  # fmt: skip
     p.add_argument("--max-s", type=float, default=None, help="stop after this many seconds")
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point (see the module docstring)."""
-    args = _parser().parse_args(argv)
-    stop = StopSignals()
-    proc = MocapProcess(
-        session_from_args(args),
-        args.mocap,
-        load_settings(args.config, args.set),
-        name=args.name,
-        wait_subscribers=args.wait_subscribers,
-    )
-    return proc.run(stop, args.max_s)
+
+    def build(args: argparse.Namespace) -> MocapProcess:
+        return MocapProcess(
+            session_from_args(args),
+            args.mocap,
+            worker_config(args),
+            name=args.name,
+            wait_subscribers=args.wait_subscribers,
+            wait_samples=args.wait_samples,
+        )
+
+    return worker_main(argv, _parser(), build)
 
 
 if __name__ == "__main__":

@@ -19,6 +19,8 @@
 - Waits (XPUB ready handshake) until ``N`` subscribers hold ``pilot.command`` (the link, and the
   recorder when recording) before opening the device, so the first command is not lost.
 - SIGINT/SIGTERM stop it cleanly (exit 0): the loop ends within one tick, the device closes.
+  It runs on the shared process shell (:class:`~groundstation.runtime.worker.Worker`): the
+  pilot loop is its one long ``step``, stopped through the shell's stop event.
 """
 
 from __future__ import annotations
@@ -26,18 +28,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import signal
 import sys
-import threading
 import time
 from collections.abc import Sequence
 
 import numpy as np
 import zmq
 
-from groundstation.bus.errors import BusTimeoutError
-from groundstation.bus.pubsub import Publisher
-from groundstation.errors import ConfigError
+from groundstation.config import Config
 from groundstation.pilot.calibration import load_calibrations
 from groundstation.pilot.commander import Commander, Tick
 from groundstation.pilot.jsdev import JoystickDevice
@@ -46,15 +44,16 @@ from groundstation.pilot.settings import PilotSettings
 from groundstation.runtime.session import (
     Session,
     add_session_arguments,
-    publish_log,
     session_from_args,
+    worker_config,
 )
+from groundstation.runtime.worker import Worker, worker_main
 
 TOPICS = ("pilot.command", "pilot.event", "raw.pilot", "status", "log")
 _STATUS_NS = 1_000_000_000
 
 
-class PilotProcess:
+class PilotProcess(Worker):
     """The pilot process shell (see the module docstring).
 
     Parameters
@@ -73,6 +72,8 @@ class PilotProcess:
         Subscribers of ``pilot.command`` to wait for before opening the device (0: none).
     wait_timeout_s : float
         Longest wait for them (then start anyway, with a warning on ``log``).
+    config : Config, optional
+        The session's configuration (its ``pilot`` section is replaced by ``settings``).
     """
 
     def __init__(
@@ -86,14 +87,17 @@ class PilotProcess:
         wait_subscribers: int = 1,
         wait_timeout_s: float = 20.0,
         context: zmq.Context | None = None,
+        config: Config | None = None,
     ) -> None:
-        self.name, self.device_path, self.settings = name, device, settings
+        config = dataclasses.replace(config or Config(), pilot=settings)
+        super().__init__(session, config, name=name, topics=TOPICS, context=context)
+        self.device_path, self.settings = device, settings
         self.wait_subscribers, self.wait_timeout_s = wait_subscribers, wait_timeout_s
         if calibrations is None:
             calibrations = load_calibrations(settings.calibration_path)
         self.commander = Commander(settings, calibrations)
-        self.ctx = context or zmq.Context()
-        self.pub = Publisher(topics=TOPICS, context=self.ctx, **session.publisher_kwargs(name))
+        self.max_ticks: int | None = None
+        self._done = False
         self.device = JoystickDevice(
             device,
             name=settings.device_name,
@@ -148,6 +152,10 @@ class PilotProcess:
             self._status(tick)
             self._next_status = tick.t_ns + _STATUS_NS
 
+    def publish_status(self, now_ns: int | None = None) -> None:
+        """The shell's periodic status is the pilot's own (each tick's state and text)."""
+        self._status(self._last, None if self._last is not None else self.state)
+
     def _status(self, tick: Tick | None, state: str | None = None) -> None:
         now = time.monotonic_ns() if tick is None else tick.t_ns
         dt = None if self._status_ns is None else (now - self._status_ns) / 1e9
@@ -176,53 +184,71 @@ class PilotProcess:
                         "ticks": self.loop_stats.ticks,
                         "missed": self.loop_stats.missed,
                     },
+                    "process": {"pid": os.getpid(), "incarnation": self.incarnation},
                 },
                 "text": tick.status if tick is not None else f"pilot {state or 'starting'}",
             },
         )
 
-    # -- lifecycle ---------------------------------------------------------------------------
-    def run(self, stop: threading.Event, max_ticks: int | None = None) -> int:
-        """Tick until ``stop`` is set (or ``max_ticks``); returns the exit code (0)."""
-        try:
-            if self.wait_subscribers > 0:
-                try:
-                    self.pub.wait_for_subscribers(
-                        self.wait_subscribers, ("pilot.command",), self.wait_timeout_s
-                    )
-                except BusTimeoutError as exc:
-                    publish_log(self.pub, self.name, "warning", f"starting anyway: {exc.message}")
-            self._status(None, "starting")
-            if self.commander.calibration_for(self.settings.device_name) is None and (
-                self.settings.device_name
-            ):
-                publish_log(
-                    self.pub, self.name, "warning",
-                    f"no calibration for {self.settings.device_name!r} in "
-                    f"{self.settings.calibration_path}: the joystick will not fly",
-                    "run 'groundstation joystick calibrate'",
-                )  # fmt: skip
-            self.device.start()
-            run_pilot_loop(
-                self.device.snapshot,
-                self.commander,
-                self.emit,
-                stop,
-                max_ticks=max_ticks,
-                stats=self.loop_stats,  # updated in place: the status shows live counts
+    # -- worker hooks --------------------------------------------------------------------------
+    def setup(self) -> int | None:
+        if self.wait_subscribers > 0:
+            self.wait_ready(self.wait_subscribers, ("pilot.command",), self.wait_timeout_s)
+        self._status(None, "starting")
+        if self.commander.calibration_for(self.settings.device_name) is None and (
+            self.settings.device_name
+        ):
+            self.log(
+                "warning",
+                f"no calibration for {self.settings.device_name!r} in "
+                f"{self.settings.calibration_path}: the joystick will not fly",
+                "run 'groundstation joystick calibrate'",
             )
-            return 0
-        finally:
-            self.close()
+        self.device.start()
+        return None
 
-    def close(self) -> None:
+    def step(self) -> None:
+        """The pilot loop, until the stop event (or ``max_ticks``)."""
+        event = getattr(self.stop, "event", self.stop)
+        run_pilot_loop(
+            self.device.snapshot,
+            self.commander,
+            self.emit,
+            event,
+            max_ticks=self.max_ticks,
+            stats=self.loop_stats,  # updated in place: the status shows live counts
+        )
+        self._done = True
+
+    def finished(self) -> bool:
+        return self._done
+
+    def run(self, stop=None, max_ticks: int | None = None) -> int:  # type: ignore[override]
+        """Tick until ``stop`` is set (a ``threading.Event`` or the shell's stop signals), or
+        ``max_ticks``; returns the exit code (0)."""
+        if max_ticks is not None:
+            self.max_ticks = max_ticks
+        return super().run(stop)
+
+    def teardown(self) -> None:
         self.device.stop()
+        self.state = "stopped"
+
+    def shutdown(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.teardown()
         try:
             self._status(self._last, "stopped")
         except Exception:  # noqa: BLE001 - best effort at shutdown
             pass
         self.pub.close()
-        self.ctx.term()
+        if self._own_ctx:
+            self.ctx.term()
+
+    def close(self) -> None:
+        self.shutdown()
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -238,10 +264,9 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def settings_from_args(args: argparse.Namespace) -> PilotSettings:
-    """``Config.pilot`` from ``--config`` / ``--set``, then ``--rate`` / ``--calibration``."""
-    from groundstation.config import load_config
-
-    settings = load_config(args.config, args.set).pilot
+    """``Config.pilot`` of the session (or ``--config`` / ``--set``), then ``--rate`` /
+    ``--calibration``."""
+    settings = worker_config(args).pilot
     changes: dict[str, object] = {}
     if args.rate is not None:
         changes["rate_hz"] = args.rate
@@ -252,23 +277,21 @@ def settings_from_args(args: argparse.Namespace) -> PilotSettings:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point (see the module docstring)."""
-    args = _parser().parse_args(argv)
-    try:
+
+    def build(args: argparse.Namespace) -> PilotProcess:
         settings = settings_from_args(args)
-    except ConfigError as exc:
-        print(f"error: {exc.message}", file=sys.stderr)
-        return 2
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda _s, _f: stop.set())
-    proc = PilotProcess(
-        session_from_args(args),
-        os.path.expanduser(args.device),
-        settings,
-        name=args.name,
-        wait_subscribers=args.wait_subscribers,
-    )
-    return proc.run(stop, args.max_ticks)
+        proc = PilotProcess(
+            session_from_args(args),
+            os.path.expanduser(args.device),
+            settings,
+            name=args.name,
+            wait_subscribers=args.wait_subscribers,
+            config=worker_config(args),
+        )
+        proc.max_ticks = args.max_ticks
+        return proc
+
+    return worker_main(argv, _parser(), build)
 
 
 if __name__ == "__main__":

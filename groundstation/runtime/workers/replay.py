@@ -15,40 +15,38 @@ from collections.abc import Sequence
 
 import zmq
 
-from groundstation.acquisition.reader import Recording, open_recording
 from groundstation.acquisition.replay import (
     FINISHED,
     SAMPLE_TOPICS,
     TOPICS,
     ReplayError,
-    Window,
     raw_fields,
     replay_decoded,
     window_ns,
 )
-from groundstation.acquisition.settings import AcquisitionSettings
+from groundstation.acquisition.segments import open_session
 from groundstation.bus.errors import BusTimeoutError
-from groundstation.bus.pubsub import Publisher
+from groundstation.config import Config
 from groundstation.runtime.session import (
     REPLAY_PUBLISHER,
-    RateCounter,
     Session,
-    StopSignals,
     add_session_arguments,
-    load_settings,
-    publish_log,
+    worker_config,
 )
+from groundstation.runtime.worker import Worker, worker_main
 
 
-class ReplaySource:
+class ReplaySource(Worker):
     """Publish a recording on the bus (see the module docstring).
 
     Parameters
     ----------
     path : str
-        Recording.
+        Recording (its first segment or folder; every segment is replayed).
     session : Session
         Endpoints; binds as ``name``.
+    config : Config
+        The session's configuration (``acquisition`` drives the decoders).
     speed : float
         Times real time; ``math.inf`` = as fast as the flow-controlled subscribers allow.
     start, end : float, optional
@@ -63,7 +61,7 @@ class ReplaySource:
         self,
         path: str,
         session: Session,
-        settings: AcquisitionSettings,
+        config: Config,
         speed: float = math.inf,
         start: float | None = None,
         end: float | None = None,
@@ -75,22 +73,25 @@ class ReplaySource:
     ) -> None:
         if not speed > 0:
             raise ReplayError(f"replay speed={speed!r} must be > 0 (or max)")
-        self.path, self.settings, self.speed = path, settings, speed
-        self.start, self.end, self.name = start, end, name
-        self.wait_subscribers, self.flow_consumers = wait_subscribers, flow_consumers
-        self.ctx = context or zmq.Context()
         paced = math.isfinite(speed)
-        self.pub = Publisher(
-            topics=TOPICS,
-            context=self.ctx,
-            flow_window=None if paced else settings.replay_flow_window,
-            flow_endpoint=session.flow_endpoint(name),
-            flow_timeout_s=60.0,
-            linger_ms=30_000,
-            **session.publisher_kwargs(name),
-        )
-        self.rates = RateCounter()
+        settings = config.acquisition
+        super().__init__(
+            session, config, name=name, topics=TOPICS, context=context,
+            publisher_kwargs=dict(
+                flow_window=None if paced else settings.replay_flow_window,
+                flow_endpoint=session.flow_endpoint(name), flow_timeout_s=60.0,
+                linger_ms=30_000,
+            ),
+        )  # fmt: skip
+        self.path, self.settings, self.speed = path, settings, speed
+        self.start, self.end = start, end
+        self.wait_subscribers, self.flow_consumers = wait_subscribers, flow_consumers
         self.published = 0
+        self._rec = None
+        self._items = None
+        self._done = False
+        self._wall0 = 0
+        self._t0 = 0
 
     def _wait(self) -> None:
         timeout = self.settings.subscriber_timeout_s
@@ -107,61 +108,59 @@ class ReplaySource:
                 self.flow_consumers, max(0.0, deadline - time.monotonic())
             )
 
-    def _status(self, state: str, text: str) -> None:
-        self.pub.publish(
-            "status",
-            {
-                "process": self.name,
-                "state": state,
-                "topics": self.rates.snapshot(time.monotonic_ns()),
-                "text": text,
-            },
-        )
-
-    def run(self, stop: StopSignals | None = None) -> int:
-        """Publish the whole window; returns 0 when done (or stopped by a signal)."""
+    def setup(self) -> int | None:
         try:
-            try:
-                self._wait()
-            except BusTimeoutError as exc:
-                publish_log(self.pub, self.name, "warning", f"starting anyway: {exc.message}")
-            with open_recording(self.path) as rec:
-                window = window_ns(rec, self.start, self.end)
-                t0 = window.start_ns if window.start_ns is not None else rec.summary.start_ns
-                self._publish_all(rec, window, t0 or 0, stop)
-            return 0
-        finally:
-            self.pub.close()
-            self.ctx.term()
+            self._wait()
+        except BusTimeoutError as exc:
+            self.log("warning", f"starting anyway: {exc.message}")
+        self._rec = rec = open_session(self.path)
+        window = window_ns(rec, self.start, self.end)
+        t0 = window.start_ns if window.start_ns is not None else rec.summary.start_ns
+        self._t0 = t0 or 0
+        self._items = replay_decoded(rec, window, self.settings)
+        self._wall0 = time.monotonic_ns()
+        self.state = "running"
+        return None
 
-    def _publish_all(self, rec: Recording, window: Window, t0: int, stop) -> None:
-        pub, paced = self.pub, math.isfinite(self.speed)
-        wall0 = time.monotonic_ns()
-        next_status = wall0
-        for msg, decoded in replay_decoded(rec, window, self.settings):
-            if stop:
-                break
-            if paced:  # absolute deadline on the log clock
-                deadline = wall0 + int((msg.log_time_ns - t0) / self.speed)
-                while (delay := deadline - time.monotonic_ns()) > 0 and not stop:
-                    time.sleep(min(delay / 1e9, 0.05))
-            payload, arrays = raw_fields(msg)
-            pub.publish(
-                msg.topic, payload, arrays, source_ns=msg.publish_time_ns, recv_ns=msg.log_time_ns
-            )
-            self.rates.add(msg.topic)
-            for d in decoded:
-                pub.publish(d.topic, d.payload, d.arrays, source_ns=d.source_ns, recv_ns=d.recv_ns)
-                self.rates.add(d.topic)
-            self.published += 1 + len(decoded)
-            now = time.monotonic_ns()
-            if now >= next_status:
-                self._status("running", f"{self.path} at speed {self.speed}")
-                next_status = now + 1_000_000_000
-        wall = (time.monotonic_ns() - wall0) / 1e9
+    def step(self) -> None:
+        """Publish the next recorded message (paced: when its deadline comes)."""
+        item = next(self._items, None)
+        if item is None:
+            self._finish()
+            return
+        msg, decoded = item
+        if math.isfinite(self.speed):  # absolute deadline on the log clock
+            deadline = self._wall0 + int((msg.log_time_ns - self._t0) / self.speed)
+            while (delay := deadline - time.monotonic_ns()) > 0 and not self.stop:
+                time.sleep(min(delay / 1e9, 0.05))
+        payload, arrays = raw_fields(msg)
+        pub = self.pub
+        pub.publish(
+            msg.topic, payload, arrays, source_ns=msg.publish_time_ns, recv_ns=msg.log_time_ns
+        )
+        self.rates.add(msg.topic)
+        for d in decoded:
+            pub.publish(d.topic, d.payload, d.arrays, source_ns=d.source_ns, recv_ns=d.recv_ns)
+            self.rates.add(d.topic)
+        self.published += 1 + len(decoded)
+
+    def _finish(self) -> None:
+        wall = (time.monotonic_ns() - self._wall0) / 1e9
         text = f"{FINISHED}: {self.published} messages in {wall:.3f} s wall"
-        publish_log(pub, self.name, "info", text)
-        self._status("finished", text)
+        self.log("info", text)
+        self.state = "finished"
+        self.publish_status()
+        self._done = True
+
+    def finished(self) -> bool:
+        return self._done
+
+    def status_text(self) -> str:
+        return f"{self.path} at speed {self.speed}"
+
+    def teardown(self) -> None:
+        if self._rec is not None:
+            self._rec.close()
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -182,23 +181,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     from groundstation.runtime.session import session_from_args
     from groundstation.runtime.sources import parse_replay_uri
 
-    args = _parser().parse_args(argv)
-    stop = StopSignals()
-    opts = parse_replay_uri(args.uri)
-    src = ReplaySource(
-        opts.path,
-        session_from_args(args),
-        load_settings(args.config, args.set),
-        opts.speed,
-        opts.start_s,
-        opts.end_s,
-        name=args.name,
-        wait_subscribers=args.wait_subscribers,
-        flow_consumers=args.wait_subscribers
-        if args.flow_consumers is None
-        else args.flow_consumers,
-    )
-    return src.run(stop)
+    def build(args: argparse.Namespace) -> ReplaySource:
+        opts = parse_replay_uri(args.uri)
+        return ReplaySource(
+            opts.path,
+            session_from_args(args),
+            worker_config(args),
+            opts.speed,
+            opts.start_s,
+            opts.end_s,
+            name=args.name,
+            wait_subscribers=args.wait_subscribers,
+            flow_consumers=args.wait_subscribers
+            if args.flow_consumers is None
+            else args.flow_consumers,
+        )
+
+    return worker_main(argv, _parser(), build)
 
 
 if __name__ == "__main__":

@@ -237,3 +237,22 @@ class ViewerProcess:
         except Exception as exc:  # noqa: BLE001 - shutting down anyway
             self.log(f"viewer: closing the sink failed: {exc!r}")
         self.sub.close()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the viewer as a session worker: ``groundstation view`` (same options)
+    under the shared lifecycle (parent-death signal, orphan watch)."""
+    import os
+    import signal
+
+    from groundstation.cli import main as cli_main
+    from groundstation.runtime.worker import OrphanWatch, die_with_parent, supervisor_pid
+
+    die_with_parent()
+    if supervisor_pid() is not None:
+        OrphanWatch(lambda: os.kill(os.getpid(), signal.SIGTERM)).start()
+    return cli_main(["view", *(sys.argv[1:] if argv is None else argv)])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

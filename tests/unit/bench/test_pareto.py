@@ -140,8 +140,11 @@ def test_cli_refuses_unknown_scenes_and_methods(tmp_path):
 @pytest.mark.soak
 @pytest.mark.timeout(3600)
 def test_cli_quick_all_scenes(tmp_path):
-    args = argparse.Namespace(out=str(tmp_path), quick=True, scenes="paper3d,session40",
-                              methods=",".join(pareto.METHODS), refit_every=None, seed=0)  # fmt: skip
+    methods = ",".join(pareto.METHODS)
+    args = argparse.Namespace(
+        out=str(tmp_path), quick=True, scenes="paper3d,session40", methods=methods,
+        refit_every=None, seed=0,
+    )  # fmt: skip
     assert cli_bench.run_pareto(args) == 0
     for name in ("pareto.png", "pareto.md", "results.json", "refit_vs_session.png"):
         assert (tmp_path / name).stat().st_size > 0

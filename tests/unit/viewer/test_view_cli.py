@@ -33,10 +33,14 @@ def test_bad_arguments_exit_2_with_a_message(argv, message, capsys, tmp_path):
     assert message in capsys.readouterr().err
 
 
-def test_session_endpoints_and_settings():
+def test_session_endpoints_and_settings(tmp_path):
+    from groundstation.runtime.session import Session
+
+    Session("ab12", ("recorder",), str(tmp_path)).write_info()  # the session must exist
     args = _args("--session", "ab12", "--publishers", "mapper,mocap", "--std-range", "0,0.2",
-                 "--trajectory-s", "5", "--show-internal")  # fmt: skip
-    eps = view_cli._endpoints(args)
+                 "--trajectory-s", "5", "--show-internal",
+                 "--session-root", str(tmp_path))  # fmt: skip
+    eps = [e.replace(str(tmp_path), "/tmp") for e in view_cli._endpoints(args)]
     assert eps == [
         "ipc:///tmp/gs-ab12/mapper.sock", "ipc:///tmp/gs-ab12/mapper.sock.latest",
         "ipc:///tmp/gs-ab12/mocap.sock", "ipc:///tmp/gs-ab12/mocap.sock.latest",
