@@ -19,7 +19,12 @@
   at most as long as its input was allowed to age (10-minute soak on a loaded 2-core machine:
   1 of 15006 commands took > 100 ms from tick to link);
 - reports unplug/replug (link events) on ``log`` and ``status``; bad bytes are counted by the
-  decoder, never raised. SIGINT/SIGTERM stop it cleanly (exit 0).
+  decoder, never raised. SIGINT/SIGTERM stop it cleanly (exit 0);
+- UDP links lock to the vehicle first heard or to ``acquisition.link_allow_peers``
+  (:class:`firmware_bridge.link.peer.PeerLock`); with ``acquisition.signing_key_file`` every
+  frame sent is MAVLink 2 signed. Status ``topics["security"]``: ``peer``, ``system_id``,
+  ``rejected_peers``, ``rejected_from``, ``last_rejected`` (UDP), ``signing`` and
+  ``rejected_signature`` (received frames with a bad signature).
 
 Two threads: the main loop reads the link (20 ms timeout) and publishes; the command thread
 forwards ``pilot.command``. Encoding and writing share one lock (the codec's sequence counter).
@@ -38,7 +43,7 @@ import numpy as np
 import zmq
 
 from firmware_bridge.errors import BridgeError
-from firmware_bridge.link import Link, open_link
+from firmware_bridge.link import Link, LinkOptions, open_link
 from firmware_bridge.mavlink import MavlinkCodec
 from firmware_bridge.mavlink.messages import (
     CommandAck,
@@ -48,6 +53,7 @@ from firmware_bridge.mavlink.messages import (
     SetMessageInterval,
     Timesync,
 )
+from firmware_bridge.mavlink.signing import load_signing_key
 from groundstation.acquisition.decoders import MavlinkStreamDecoder
 from groundstation.acquisition.settings import AcquisitionSettings
 from groundstation.bus.errors import BusTimeoutError
@@ -76,6 +82,7 @@ _REPORTED_EVENTS = {
     "reconnected": "info",
     "read_error": "warning",
     "write_error": "warning",
+    "peer_rejected": "warning",
 }
 
 
@@ -105,7 +112,7 @@ class LinkProcess:
         self.decoder = MavlinkStreamDecoder(
             s.timesync_window, int(s.timesync_max_rtt_ms * 1e6), int(s.mocap_latency_ms * 1e6)
         )
-        self.tx = MavlinkCodec(s.system_id, s.component_id)
+        self.tx: MavlinkCodec | None = None  # made in run(): loading the key may fail
         self.link: Link | None = None
         self.rates = RateCounter()
         self.state = "starting"
@@ -123,12 +130,12 @@ class LinkProcess:
     def _send(self, record: Record) -> None:
         """Encode and write one record (any thread); a bad value is counted and reported by the
         main loop (the publisher belongs to it), never raised."""
-        link = self.link
-        if link is None:
+        link, tx = self.link, self.tx
+        if link is None or tx is None:
             return
         try:
             with self._tx_lock:
-                link.write(self.tx.encode(record))
+                link.write(tx.encode(record))
         except BridgeError as exc:  # a value out of range: report, keep going
             self.commands_rejected += 1
             self._warnings.append(f"not sent: {exc.message}")
@@ -199,7 +206,11 @@ class LinkProcess:
             self.pub.publish(d.topic, d.payload, d.arrays, source_ns=d.source_ns, recv_ns=d.recv_ns)
             self.rates.add(d.topic)
         for rec in records:
-            if isinstance(rec, Timesync) and rec.tc1 == 0 and rec.system_id != self.tx.system_id:
+            if (
+                isinstance(rec, Timesync)
+                and rec.tc1 == 0
+                and rec.system_id != self.settings.system_id
+            ):
                 self._send(Timesync(time.monotonic_ns(), rec.ts1))  # the vehicle syncs to us
             elif isinstance(rec, CommandAck):
                 self.acks.append((rec.command, rec.result))
@@ -228,6 +239,7 @@ class LinkProcess:
         now_ns = time.monotonic_ns() if now_ns is None else now_ns
         self.pub.publish("link.health", self.decoder.health_payload(self._connected()))
         topics = self.rates.snapshot(now_ns)
+        topics["security"] = self.security_counters()
         topics["pilot.command"] = {
             "received": self.commands_received,
             "manual_control_sent": self.manual_sent,
@@ -244,6 +256,23 @@ class LinkProcess:
             },
         )
 
+    def security_counters(self) -> dict:
+        """Peer lock (UDP links) and signing counters for the status payload."""
+        lock = getattr(self.link, "peer_lock", None)
+        out: dict = lock.counters() if lock is not None else {}
+        out["signing"] = bool(self.settings.signing_key_file)
+        out["rejected_signature"] = int(self.decoder.codec.stats.rejected_signature)
+        return out
+
+    def _open(self) -> None:
+        """Make the uplink codec (signed when a key is configured) and open the link."""
+        s = self.settings
+        key = load_signing_key(s.signing_key_file) if s.signing_key_file else None
+        self.tx = MavlinkCodec(
+            s.system_id, s.component_id, signing_key=key, sign_outgoing=key is not None
+        )
+        self.link = open_link(self.uri, LinkOptions(s.link_allow_peers, s.vehicle_system_id))
+
     # -- loop --------------------------------------------------------------------------------
     def run(self, stop: StopSignals | None = None, max_s: float | None = None) -> int:
         """Run until SIGINT/SIGTERM (or ``max_s`` seconds); returns the exit code."""
@@ -256,7 +285,7 @@ class LinkProcess:
             except BusTimeoutError as exc:
                 publish_log(self.pub, self.name, "warning", f"starting anyway: {exc.message}")
             try:
-                self.link = open_link(self.uri)
+                self._open()
             except BridgeError as exc:
                 self.state = "failed"
                 publish_log(self.pub, self.name, "error", exc.message, exc.hint)

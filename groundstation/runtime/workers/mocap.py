@@ -9,6 +9,13 @@ recorder keeps them as channel metadata), the poses
 :class:`~groundstation.acquisition.decoders.NatNetStreamDecoder` makes of it on
 ``samples.pose``, and ``status`` every ``health_period_s``. Bad datagrams are counted and
 reported in the status, never raised. SIGINT/SIGTERM stop it cleanly (exit 0).
+
+Datagrams not from the NatNet server (and server info not from its command port) are dropped by
+the link before they are published or recorded (:class:`firmware_bridge.natnet.peers.
+NatNetPeerPolicy`); a server-info version change is logged as a warning. Status
+``topics["decoder"]``: ``bad``, ``nonfinite``, ``ignored``, ``out_of_range``,
+``refused_versions``, ``version_changes``, ``version``; ``topics["security"]``: ``server``,
+``rejected_peers``, ``rejected_server_info``, ``rejected_from``, ``last_rejected``.
 """
 
 from __future__ import annotations
@@ -69,6 +76,8 @@ class MocapProcess:
         self.rates = RateCounter()
         self.state = "starting"
         self._reported_bad = 0
+        self._reported_events = 0
+        self._reported_rejections = 0
 
     def on_datagram(self, data: bytes, recv_ns: int, sender: str) -> None:
         """Publish one datagram received at ``recv_ns`` and its poses."""
@@ -92,8 +101,32 @@ class MocapProcess:
             text = f"{n_new} bad NatNet datagram(s); last: {self.decoder.last_error}"
             publish_log(self.pub, self.name, "warning", text)
             self._reported_bad = c.bad
+        for text in self.decoder.events[self._reported_events :]:
+            publish_log(self.pub, self.name, "warning", text)
+        self._reported_events = len(self.decoder.events)
+        policy = getattr(self.link, "policy", None)
+        security = policy.counters() if policy is not None else {}
+        rejected = int(security.get("rejected_peers", 0)) + int(
+            security.get("rejected_server_info", 0)
+        )
+        if rejected > self._reported_rejections:
+            text = (
+                f"{rejected - self._reported_rejections} NatNet datagram(s) rejected; "
+                f"last: {security.get('last_rejected')}"
+            )
+            publish_log(self.pub, self.name, "warning", text)
+            self._reported_rejections = rejected
         topics = self.rates.snapshot(now_ns)
-        topics["decoder"] = {"bad": c.bad, "nonfinite": c.nonfinite, "ignored": c.ignored}
+        topics["decoder"] = {
+            "bad": c.bad,
+            "nonfinite": c.nonfinite,
+            "ignored": c.ignored,
+            "out_of_range": c.out_of_range,
+            "refused_versions": c.refused_versions,
+            "version_changes": c.version_changes,
+            "version": ".".join(str(v) for v in self.decoder.version),
+        }
+        topics["security"] = security
         self.pub.publish(
             "status",
             {
