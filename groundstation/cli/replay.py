@@ -7,6 +7,10 @@ one (replay source, detector and mapper processes on a session bus; also used fo
 observations.csv, report.json, snapshots/) and print a progress line on stderr and the report
 summary on stdout. Settings: ``--config FILE`` and ``--set section.key=value`` (every section
 of ``groundstation config show``).
+
+A damaged recording (corrupt chunks, a truncated file that lost data) is first checked chunk by
+chunk; the replay then runs on what can be read, says what was dropped, and exits with status
+:data:`EXIT_DAMAGED` unless ``--allow-damaged`` is given (then 0).
 """
 
 from __future__ import annotations
@@ -18,6 +22,8 @@ from pathlib import Path
 
 from groundstation.errors import ConfigError, InputDataError
 
+#: Exit status of a replay that ran on a damaged recording without ``--allow-damaged``.
+EXIT_DAMAGED = 3
 #: Report keys printed on stdout (those present in the report).
 REPORT_SUMMARY_KEYS = (
     "duration_s", "contacts", "contacts_per_min", "observations", "refits", "refit_s_median",
@@ -51,6 +57,30 @@ def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--snapshots", type=int, default=3, help="PNG snapshots of the last N fits")
     parser.add_argument("--timeout", type=float, default=1800.0, help="multi-process time limit, s")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
+    parser.add_argument(
+        "--allow-damaged",
+        action="store_true",
+        help=f"exit 0 even if the recording is damaged (default: exit {EXIT_DAMAGED})",
+    )
+
+
+def check_damage(log: Path) -> str | None:
+    """Decode every chunk of ``log`` once; what was lost, or None for an intact recording.
+
+    Raises
+    ------
+    RecordingError
+        Not a recording at all (or unreadable).
+    """
+    import warnings
+
+    from groundstation.acquisition.reader import TruncatedRecordingWarning, open_recording
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TruncatedRecordingWarning)  # reported below instead
+        with open_recording(log) as rec:
+            rec.verify()
+            return rec.damage_text() if rec.damaged else None
 
 
 def _progress_offline(quiet: bool):
@@ -79,6 +109,9 @@ def run_replay(args: argparse.Namespace) -> int:
     if args.snapshots < 0:
         raise ConfigError(f"--snapshots must be >= 0, got {args.snapshots}")
     config = load_config(args.config, args.set)  # validate once, here
+    damage = check_damage(log)
+    if damage is not None:
+        print(f"warning: recording {log.name} is damaged: {damage}", file=sys.stderr)
     if args.processes or math.isfinite(args.speed):
         from groundstation.pipeline.multiprocess import run_multiprocess
 
@@ -115,4 +148,12 @@ def run_replay(args: argparse.Namespace) -> int:
     gaps = sum(v for v in result.gaps.values())
     if gaps:
         print(f"warning: {gaps} sequence gaps on the bus: {result.gaps}", file=sys.stderr)
+    if damage is not None and not getattr(args, "allow_damaged", False):
+        print(f"error: replayed a damaged recording: {damage}", file=sys.stderr)
+        print(
+            "hint: the outputs cover only what could be read; pass --allow-damaged to accept "
+            "that (exit 0)",
+            file=sys.stderr,
+        )
+        return EXIT_DAMAGED
     return 0
