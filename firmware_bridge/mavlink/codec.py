@@ -279,11 +279,25 @@ class MavlinkCodec:
             st.unknown += 1
         else:
             self._frame_signed = signed
-            rejected_before = self._rx.signing.reject_count
+            signing = self._rx.signing
+            rejected_before, badsig_before = signing.reject_count, signing.badsig_count
+            stream = (frame[-13], sysid, compid) if signed else None
+            last_ts = signing.stream_timestamps.get(stream) if stream else None
             try:
                 msg = self._rx.decode(frame)
             except Exception:  # MAVError, or anything else pymavlink raises on bad bytes
-                if self._rx.signing.reject_count != rejected_before:
+                msg = None
+            if stream is not None and signing.badsig_count != badsig_before:
+                # pymavlink stores a stream's timestamp *before* it checks the signature: one
+                # forged frame with timestamp 2**48-1 would make every genuine frame after it a
+                # "replay" (even a forged telemetry frame, accepted unverified). Keep only
+                # verified timestamps, as the MAVLink C library's mavlink_signature_check does.
+                if last_ts is None:
+                    signing.stream_timestamps.pop(stream, None)
+                else:
+                    signing.stream_timestamps[stream] = last_ts
+            if msg is None:
+                if signing.reject_count != rejected_before:
                     st.rejected_signature += 1
                     return True  # a real frame (checksum passed): skip it whole
                 return False

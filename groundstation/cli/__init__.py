@@ -16,6 +16,7 @@ import importlib
 import sys
 from collections.abc import Callable, Sequence
 
+from firmware_bridge.errors import BridgeError
 from groundstation.errors import GroundstationError
 
 
@@ -156,7 +157,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv[len(match) :])
     try:
         return int(run(args) or 0)
-    except GroundstationError as exc:
+    except (GroundstationError, BridgeError) as exc:  # e.g. a bad link URI (firmware_bridge)
         print(f"error: {exc.message}", file=sys.stderr)
         if exc.hint:
             print(f"hint: {exc.hint}", file=sys.stderr)

@@ -76,6 +76,13 @@ def add_live_arguments(parser: argparse.ArgumentParser) -> None:
         "--set", action="append", default=[], metavar="KEY=VALUE", help="override a setting"
     )
     parser.add_argument("--session-root", default="/tmp", help="parent of the session directory")
+    parser.add_argument(
+        "--signing-key",
+        default=None,
+        metavar="FILE",
+        help="MAVLink 2 signing key (32 raw bytes or 64 hex characters): sign every command "
+        "sent to the vehicle (sets acquisition.signing_key_file)",
+    )
 
 
 def _available(module: str) -> bool:
@@ -85,15 +92,29 @@ def _available(module: str) -> bool:
         return False
 
 
+def _signing_sets(args: argparse.Namespace) -> list[str]:
+    """``--signing-key FILE`` as the setting the link process reads (absolute path)."""
+    key = getattr(args, "signing_key", None)
+    return [] if key is None else [f"acquisition.signing_key_file={Path(key).resolve()}"]
+
+
 def _check_config(args: argparse.Namespace) -> None:
     """Load the configuration once here, so a bad setting fails before any worker starts."""
-    load_settings(args.config, args.set)
+    settings = load_settings(args.config, [*args.set, *_signing_sets(args)])
+    if settings.signing_key_file:
+        from firmware_bridge.mavlink.signing import SigningKeyError, load_signing_key
+
+        try:
+            load_signing_key(settings.signing_key_file)
+        except SigningKeyError as exc:
+            raise ConfigError(exc.message, exc.hint) from None
 
 
 def plan(args: argparse.Namespace, session_id: str) -> tuple[Session, list[WorkerSpec]]:
     """The session and the worker specs of a live run, in start order (no side effects)."""
     cfg_file = ["--config", args.config] if args.config else []
-    cfg = (*cfg_file, *[a for s in args.set for a in ("--set", s)])
+    sets = [*args.set, *_signing_sets(args)]
+    cfg = (*cfg_file, *[a for s in sets for a in ("--set", s)])
     mapping = not args.no_mapping and _available(DETECTOR_MODULE) and _available(MAPPER_MODULE)
     names = ["recorder"] if args.record else []
     names += ["link"] + (["mocap"] if args.mocap else []) + (["pilot"] if args.joystick else [])
