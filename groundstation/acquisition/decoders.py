@@ -242,15 +242,16 @@ class MavlinkStreamDecoder:
                 recv_ns,
             )
         if isinstance(rec, AttitudeSample):
-            if not _finite(rec.quaternion, rec.rates) or not any(rec.quaternion):
+            q = np.array(rec.quaternion)
+            norm = float(np.linalg.norm(q)) if _finite(rec.quaternion, rec.rates) else math.nan
+            if not norm > 1e-12 or not math.isfinite(norm):  # zero, denormal or overflowing
                 self.counters.nonfinite += 1
                 return None
-            q = np.array(rec.quaternion)
             src = rec.time_source_ns
             return Decoded(
                 "samples.attitude",
                 {"t_station_ns": self.t_station_ns(src, recv_ns)},
-                {"q_wxyz": q / np.linalg.norm(q), "rates_radps": np.array(rec.rates)},
+                {"q_wxyz": q / norm, "rates_radps": np.array(rec.rates)},
                 src,
                 recv_ns,
             )
@@ -265,11 +266,14 @@ class MavlinkStreamDecoder:
                     self.vehicle = (rec.system_id, rec.component_id)
             return None
         if isinstance(rec, MocapPose):
-            if not _finite(rec.position, rec.quaternion) or not any(rec.quaternion):
+            try:
+                if not _finite(rec.position, rec.quaternion):
+                    raise AxisError("non-finite pose")
+                p = ned_to_enu(rec.position)
+                q = quat_ned_frd_to_enu_flu(rec.quaternion)  # AxisError: zero/denormal norm
+            except AxisError:
                 self.counters.nonfinite += 1
                 return None
-            p = ned_to_enu(rec.position)
-            q = quat_ned_frd_to_enu_flu(rec.quaternion)
             return Decoded(
                 "samples.pose",
                 {

@@ -103,6 +103,11 @@ COMMANDS: dict[tuple[str, ...], Command] = {
         "speed",
         "fit and prediction times of the estimators and the default mapper at the paper's sizes",
     ),
+    ("bench", "fuzz"): Command(
+        "bench",
+        "fuzz",
+        "millions of hostile inputs per parser: only declared errors, no slow input, no hang",
+    ),
 }
 
 

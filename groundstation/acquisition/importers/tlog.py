@@ -16,6 +16,7 @@ the next position that holds a plausible timestamp followed by a valid frame.
 from __future__ import annotations
 
 import os
+import re
 import struct
 from collections import Counter
 from collections.abc import Iterator
@@ -33,6 +34,7 @@ from groundstation.acquisition.recorder import Recorder
 
 _TS = struct.Struct(">Q")
 _STX_V2, _STX_V1 = 0xFD, 0xFE
+_STX = re.compile(b"[\xfd\xfe]")
 _SIGNATURE_LEN = 13
 #: Log times are int64 ns downstream (bus headers): later timestamps are dropped and counted.
 MAX_TIME_NS = 2**63 - 1
@@ -121,7 +123,12 @@ def read_tlog(data: bytes, skipped: Counter) -> Iterator[TlogRecord]:
         if not resyncing:
             skipped["damaged record (bad frame), resynced"] += 1
             resyncing = True
-        pos += 1
+        # next position whose frame would start with a start byte (the byte-by-byte scan of
+        # the resync, without visiting the positions that cannot hold a record)
+        m = _STX.search(data, pos + 1 + _TS.size)
+        if m is None:
+            return
+        pos = m.start() - _TS.size
 
 
 def import_tlog(

@@ -22,7 +22,13 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_bridge.mavlink import MavlinkCodec
-from firmware_bridge.mavlink.messages import AttitudeSample, Heartbeat, ImuSample, Timesync
+from firmware_bridge.mavlink.messages import (
+    AttitudeSample,
+    Heartbeat,
+    ImuSample,
+    MocapPose,
+    Timesync,
+)
 from firmware_bridge.natnet import (
     FrameOfData,
     RigidBody,
@@ -189,3 +195,20 @@ def test_mavlink_decoder_never_raises_and_yields_publishable_samples(seed):
             publishable(d)
         pos += k
     dec.health_payload(True)
+
+
+@pytest.mark.parametrize(
+    ("q", "kept"),
+    [((1e-300, 0.0, 0.0, 0.0), 0), ((1e-40, 1e-40, 0.0, 0.0), 0), ((3e38, 3e38, 3e38, 3e38), 2)],
+)
+def test_mavlink_quaternions_with_a_useless_norm_are_counted_not_raised(q, kept):
+    """Found by ``bench fuzz --target mavlink``: an ATT_POS_MOCAP quaternion with a tiny but
+    nonzero norm passed the "any nonzero" check and raised AxisError out of the decoder."""
+    tx = MavlinkCodec(1, 197)
+    dec = MavlinkStreamDecoder()
+    frames = tx.encode(MocapPose(q, (1.0, 2.0, 3.0), time_source_ns=1000))
+    frames += tx.encode(AttitudeSample(q, (0.0, 0.0, 0.0), time_source_ns=1000))
+    out = dec.feed(frames, 5)
+    for d in out:
+        publishable(d)
+    assert len(out) == kept and dec.counters.nonfinite == 2 - kept
