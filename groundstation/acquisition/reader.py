@@ -8,7 +8,7 @@ every complete chunk with a valid CRC is kept, and a :class:`RecoveryReport` say
 (:class:`TruncatedRecordingWarning`) is issued once per opened file.
 
 Damage is never silent and never a library exception. Every chunk is decoded here with bounded
-sizes (compressed and uncompressed size <= :data:`MAX_CHUNK_BYTES`, zstd/lz4 output capped at the
+sizes (:mod:`groundstation.acquisition.chunks`: at most 256 MiB, zstd/lz4 output capped at the
 declared size) and its CRC checked; a chunk that fails is skipped and added to
 :attr:`Recording.damage` (:class:`DamageReport`: which chunks, their log-time spans and, from the
 message indexes, how many messages of which topics were lost). Before, mcap/zstd exceptions of 5
@@ -23,7 +23,6 @@ import io
 import os
 import struct
 import warnings
-import zlib
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -36,24 +35,19 @@ from mcap.reader import SeekingReader
 from mcap.records import Attachment, Channel, Metadata
 
 from groundstation.acquisition import layout
+from groundstation.acquisition.chunks import (
+    ChunkDamage,
+    ChunkMessage,
+    decode_chunk,
+    message_index_count,
+)
 from groundstation.acquisition.recorder import RecordingError
 
 _MAGIC = b"\x89MCAP0\r\n"
 MAGIC_SIZE = len(_MAGIC)
 _RECORD_PREFIX = struct.Struct("<BQ")  # opcode u8, length u64 (MCAP spec "Records")
 _FOOTER_LEN = 1 + 8 + 8 + 8 + 4  # opcode, length, summary_start, summary_offset_start, crc
-_CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, crc, compression length
-_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
-_U64 = struct.Struct("<Q")
-_U32 = struct.Struct("<I")
-#: Largest chunk (compressed or not) this reader decodes; the recorder writes 256 KiB chunks.
-MAX_CHUNK_BYTES = 256 * 1024 * 1024
-#: Recorded problems kept in a DamageReport (the counts go on past it).
 _MAX_PROBLEMS = 20
-
-
-class _Damage(Exception):
-    """Internal: a record could not be decoded (never leaves this module)."""
 
 
 class TruncatedRecordingWarning(UserWarning):
@@ -303,7 +297,7 @@ class Recording:
             counts: Counter = Counter()
             for cid, n in stats.channel_message_counts.items():
                 counts[channels[cid].topic] += n
-        except (_Damage, KeyError) as exc:
+        except (ChunkDamage, KeyError) as exc:
             return f"inconsistent summary ({exc})"
         if stats.message_count and not chunks:
             return "summary without chunk indexes"
@@ -328,7 +322,7 @@ class Recording:
     def _chunk_ref_from_index(self, ci: Any) -> _ChunkRef:
         start, length = int(ci.chunk_start_offset), int(ci.chunk_length)
         if start < MAGIC_SIZE or length < _RECORD_PREFIX.size or start + length > self._size:
-            raise _Damage(f"chunk index points outside the file ({start}+{length})")
+            raise ChunkDamage(f"chunk index points outside the file ({start}+{length})")
         offsets = {int(c): int(o) for c, o in ci.message_index_offsets.items()}
         return _ChunkRef(
             start + _RECORD_PREFIX.size,
@@ -343,11 +337,11 @@ class Recording:
         what = cls.__name__.lower()
         try:
             if offset < MAGIC_SIZE or length < _RECORD_PREFIX.size or offset + length > self._size:
-                raise _Damage(f"index points outside the file ({offset}+{length})")
+                raise ChunkDamage(f"index points outside the file ({offset}+{length})")
             self._file.seek(offset)
             op, body_len = _RECORD_PREFIX.unpack(self._file.read(_RECORD_PREFIX.size))
             if op != opcode or body_len != length - _RECORD_PREFIX.size:
-                raise _Damage(f"opcode {op:#x} / length {body_len} do not match the index")
+                raise ChunkDamage(f"opcode {op:#x} / length {body_len} do not match the index")
             body = self._file.read(body_len)
             return cls.read(ReadDataStream(io.BytesIO(body)))
         except Exception as exc:  # noqa: BLE001 - a corrupt record is skipped and counted
@@ -411,8 +405,8 @@ class Recording:
                 ref = _ChunkRef(body_at, length, 0, 0, index_counts={})
                 last_ref = ref
                 try:
-                    records = _decode_chunk(body)
-                except _Damage as exc:
+                    records = decode_chunk(body)
+                except ChunkDamage as exc:
                     corrupt += 1
                     self._chunk_damaged(ref, body, str(exc))
                 else:
@@ -421,7 +415,7 @@ class Recording:
                     for rec in records:
                         if isinstance(rec, Channel):
                             self._channels[rec.id] = _info(rec)
-                        elif isinstance(rec, _Msg) and rec.channel_id in self._channels:
+                        elif isinstance(rec, ChunkMessage) and rec.channel_id in self._channels:
                             counts[self._channels[rec.channel_id].topic] += 1
                             recovered += 1
                             t = rec.log_time
@@ -433,7 +427,7 @@ class Recording:
                         start_ns = cstart if start_ns is None else min(start_ns, cstart)
                         end_ns = cend if end_ns is None else max(end_ns, cend)
             elif opcode == Opcode.MESSAGE_INDEX and last_ref is not None:
-                counted = _message_index_count(body)
+                counted = message_index_count(body)
                 if counted is not None and last_ref.index_counts is not None:
                     cid, n = counted
                     last_ref.index_counts[cid] = n
@@ -511,7 +505,7 @@ class Recording:
         op, length = _RECORD_PREFIX.unpack(self._file.read(_RECORD_PREFIX.size))
         if op != Opcode.MESSAGE_INDEX or offset + _RECORD_PREFIX.size + length > self._size:
             return None
-        return _message_index_count(self._file.read(length))
+        return message_index_count(self._file.read(length))
 
     def _load_chunk(self, ref: _ChunkRef) -> list[Any] | None:
         """The records of one chunk, or None after recording it as damaged."""
@@ -520,13 +514,15 @@ class Recording:
         body = None
         try:
             if len(prefix) != _RECORD_PREFIX.size:
-                raise _Damage("chunk record cut short")
+                raise ChunkDamage("chunk record cut short")
             op, length = _RECORD_PREFIX.unpack(prefix)
             if op != Opcode.CHUNK or length != ref.length:
-                raise _Damage(f"record at the indexed offset is opcode {op:#x}, length {length}")
+                raise ChunkDamage(
+                    f"record at the indexed offset is opcode {op:#x}, length {length}"
+                )
             body = self._file.read(ref.length)
-            return _decode_chunk(body)
-        except _Damage as exc:
+            return decode_chunk(body)
+        except ChunkDamage as exc:
             self._chunk_damaged(ref, body, str(exc))
             return None
 
@@ -594,7 +590,7 @@ class Recording:
             ),
             key=lambda r: (r.start_ns, r.offset),
         )
-        heap: list[tuple[int, int, int, _Msg]] = []
+        heap: list[tuple[int, int, int, ChunkMessage]] = []
         for ref in refs:
             while heap and heap[0][0] < ref.start_ns:
                 yield self._message_from_heap(heapq.heappop(heap))
@@ -614,7 +610,7 @@ class Recording:
         while heap:
             yield self._message_from_heap(heapq.heappop(heap))
 
-    def _message_from_heap(self, item: tuple[int, int, int, _Msg]) -> RecordedMessage:
+    def _message_from_heap(self, item: tuple[int, int, int, ChunkMessage]) -> RecordedMessage:
         msg = item[3]
         ch = self._channels[msg.channel_id]
         return RecordedMessage(
@@ -666,104 +662,6 @@ class Recording:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-@dataclass(frozen=True, slots=True)
-class _Msg:
-    channel_id: int
-    sequence: int
-    log_time: int
-    publish_time: int
-    data: bytes
-
-
-def _decompress(compression: str, data: bytes, size: int) -> bytes:
-    """Chunk records, decompressed with the output capped at the declared ``size``."""
-    if compression == "":
-        return data
-    try:
-        if compression == "zstd":
-            import zstandard
-
-            declared = zstandard.frame_content_size(data)
-            if declared > size:  # zstd would allocate what the frame declares
-                raise _Damage(f"zstd frame declares {declared} bytes, chunk header says {size}")
-            # max_output_size=0 would mean "no limit" for a frame without a content size
-            return zstandard.ZstdDecompressor().decompress(data, max_output_size=max(size, 1))
-        if compression == "lz4":
-            import lz4.frame
-
-            return lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size)
-    except ImportError as exc:
-        raise _Damage(f"{compression} chunks need a package that is missing: {exc}") from None
-    except _Damage:
-        raise
-    except Exception as exc:  # noqa: BLE001 - zstd/lz4 raise their own error types
-        raise _Damage(f"{compression} decompression failed: {str(exc)[:100]}") from None
-    raise _Damage(f"unknown chunk compression {compression[:20]!r}")
-
-
-def _decode_chunk(body: bytes) -> list[Channel | _Msg]:
-    """Decode a chunk record body: bounded sizes, CRC checked; raises :class:`_Damage`."""
-    if len(body) < _CHUNK_HEAD.size:
-        raise _Damage(f"chunk of {len(body)} bytes is shorter than its header")
-    _start, _end, usize, crc, clen = _CHUNK_HEAD.unpack_from(body)
-    o = _CHUNK_HEAD.size
-    if clen > 64 or o + clen + _U64.size > len(body):
-        raise _Damage(f"chunk compression name of {clen} bytes")
-    try:
-        compression = body[o : o + clen].decode("utf-8")
-    except UnicodeDecodeError:
-        raise _Damage("chunk compression name is not UTF-8") from None
-    o += clen
-    (rlen,) = _U64.unpack_from(body, o)
-    o += _U64.size
-    if rlen != len(body) - o:
-        raise _Damage(f"chunk declares {rlen} record bytes but holds {len(body) - o}")
-    if usize > MAX_CHUNK_BYTES or rlen > MAX_CHUNK_BYTES:
-        raise _Damage(f"chunk of {usize} bytes exceeds the {MAX_CHUNK_BYTES}-byte limit")
-    data = _decompress(compression, body[o:], usize)
-    if len(data) != usize:
-        raise _Damage(f"chunk decompressed to {len(data)} bytes, header says {usize}")
-    if crc != 0 and zlib.crc32(data) != crc:
-        raise _Damage(f"chunk CRC {zlib.crc32(data):#010x} does not match {crc:#010x}")
-    return _chunk_records(data)
-
-
-def _chunk_records(data: bytes) -> list[Channel | _Msg]:
-    out: list[Channel | _Msg] = []
-    pos, n = 0, len(data)
-    while pos < n:
-        if n - pos < _RECORD_PREFIX.size:
-            raise _Damage(f"{n - pos} stray bytes at the end of a chunk")
-        op, length = _RECORD_PREFIX.unpack_from(data, pos)
-        pos += _RECORD_PREFIX.size
-        if length > n - pos:
-            raise _Damage(f"record {op:#x} of {length} bytes runs past the chunk end")
-        if op == Opcode.MESSAGE:
-            if length < _MESSAGE_HEAD.size:
-                raise _Damage(f"message record of {length} bytes")
-            cid, seq, log_time, publish_time = _MESSAGE_HEAD.unpack_from(data, pos)
-            body = data[pos + _MESSAGE_HEAD.size : pos + length]
-            out.append(_Msg(cid, seq, log_time, publish_time, body))
-        elif op == Opcode.CHANNEL:
-            try:
-                out.append(Channel.read(ReadDataStream(io.BytesIO(data[pos : pos + length]))))
-            except Exception as exc:  # noqa: BLE001 - mcap's record parser on bad bytes
-                raise _Damage(f"channel record: {type(exc).__name__}: {str(exc)[:80]}") from None
-        pos += length
-    return out
-
-
-def _message_index_count(body: bytes) -> tuple[int, int] | None:
-    """(channel id, number of entries) of a MessageIndex record body, or None if malformed."""
-    if len(body) < 6:
-        return None
-    cid = body[0] | (body[1] << 8)
-    (records_len,) = _U32.unpack_from(body, 2)
-    if records_len % 16 or 6 + records_len != len(body):
-        return None
-    return cid, records_len // 16
 
 
 def _info(ch: Channel) -> ChannelInfo:

@@ -18,6 +18,10 @@ recorder last, which drains its queue and closes the file; the recording is then
 that it is complete (exit 0) and its contents are summarised. ``--summary FILE`` writes the
 session's measured numbers (refit time, mesh interval, contact-to-mesh latency, gaps) as JSON.
 
+``--signing-key FILE`` (32 raw bytes or 64 hex characters) signs every frame the link process
+sends to the vehicle with MAVLink 2 signing (``acquisition.signing_key_file``); a vehicle (or
+``groundstation sitl --signing-key FILE``) holding the same key then rejects unsigned commands.
+
 Ready handshake: the link and mocap processes wait for the monitor and the recorder on their
 data topics, the pilot for the link, the monitor and the recorder on ``pilot.command``, so the
 recording starts with sequence 0 of every source stream.
