@@ -9,9 +9,18 @@ from firmware_bridge.link.base import (
     LINK_CLASSES,
     Link,
     LinkEvent,
+    LinkOptions,
     ParsedUri,
     open_link,
     parse_uri,
 )
 
-__all__ = ["LINK_CLASSES", "Link", "LinkEvent", "ParsedUri", "open_link", "parse_uri"]
+__all__ = [
+    "LINK_CLASSES",
+    "Link",
+    "LinkEvent",
+    "LinkOptions",
+    "ParsedUri",
+    "open_link",
+    "parse_uri",
+]

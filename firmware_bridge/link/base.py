@@ -116,8 +116,32 @@ def link_class(scheme: str, uri: str = "") -> type:
     return getattr(module, class_name)
 
 
-def open_link(uri: str) -> Link:
+@dataclass(frozen=True)
+class LinkOptions:
+    """Settings a link takes besides its URI.
+
+    Attributes
+    ----------
+    allow_peers : tuple of str
+        UDP links: senders accepted (``"host"`` or ``"host:port"``); empty = lock to the first
+        vehicle heard (:class:`firmware_bridge.link.peer.PeerLock`). Other links ignore it.
+    vehicle_system_id : int
+        UDP links: lock only to this MAVLink system id (0 = the first one heard).
+    """
+
+    allow_peers: tuple[str, ...] = ()
+    vehicle_system_id: int = 0
+
+
+def open_link(uri: str, options: LinkOptions | None = None) -> Link:
     """Open a link by URI: ``serial:///dev/ttyUSB0?baud=921600``, ``udp://0.0.0.0:14550``, ...
+
+    Parameters
+    ----------
+    uri : str
+        The link URI.
+    options : LinkOptions, optional
+        Peer lock / allow-list of UDP links (default: lock to the first vehicle heard).
 
     Raises
     ------
@@ -127,7 +151,8 @@ def open_link(uri: str) -> Link:
         The device or socket cannot be opened.
     """
     parsed = parse_uri(uri)
-    return link_class(parsed.scheme, uri)(parsed)
+    cls = link_class(parsed.scheme, uri)
+    return cls(parsed) if options is None else cls(parsed, options=options)
 
 
 @dataclass(frozen=True)

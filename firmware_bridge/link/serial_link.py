@@ -21,7 +21,7 @@ import time
 import serial
 
 from firmware_bridge.errors import LinkError
-from firmware_bridge.link.base import Link, ParsedUri
+from firmware_bridge.link.base import Link, LinkOptions, ParsedUri
 
 EXAMPLE = "serial:///dev/ttyUSB0?baud=921600"
 _PARAMS = {"baud", "reconnect_min_s", "reconnect_max_s", "write_timeout_s"}
@@ -43,8 +43,8 @@ class SerialLink(Link):
         Counters.
     """
 
-    def __init__(self, parsed: ParsedUri) -> None:
-        super().__init__(parsed)
+    def __init__(self, parsed: ParsedUri, options: LinkOptions | None = None) -> None:
+        super().__init__(parsed)  # options (UDP peer lock) do not apply to a serial line
         if parsed.scheme != "serial":
             raise parsed.error("not a serial:// URI", EXAMPLE)
         if parsed.host:

@@ -1,10 +1,17 @@
 """UDP link: ``udp://0.0.0.0:14550`` listens, ``udp://host:port`` sends.
 
-Listen mode binds ``host:port`` and replies to the last peer heard from (MAVLink's usual
+Listen mode binds ``host:port`` and replies to the vehicle it locked to (MAVLink's usual
 ground-station arrangement). Send mode binds an ephemeral local port (or ``local_port``) and sends
 to ``host:port``; replies come back to that local port. The mode follows the host (wildcard
 ``0.0.0.0`` / ``::`` listens) unless ``?mode=listen`` or ``?mode=send`` says otherwise, so
 ``udp://127.0.0.1:14550?mode=listen`` listens on loopback only.
+
+In both modes a :class:`~firmware_bridge.link.peer.PeerLock` accepts datagrams only from the
+vehicle first heard (its address and system id; in send mode the target's address) or from an
+allow-list
+(:class:`~firmware_bridge.link.base.LinkOptions`); others are dropped, counted
+(``peer_lock.rejected``) and reported once per sender as a ``peer_rejected`` event. Until the
+lock, nothing is sent in listen mode.
 
 One ``read`` returns one datagram (MAVLink frames may still span datagrams; the codec copes).
 Reads block in ``select`` on the socket and a wake pipe, so ``close`` interrupts them.
@@ -18,7 +25,8 @@ import socket
 import threading
 
 from firmware_bridge.errors import LinkError
-from firmware_bridge.link.base import Link, ParsedUri
+from firmware_bridge.link.base import Link, LinkOptions, ParsedUri
+from firmware_bridge.link.peer import PeerLock
 
 EXAMPLE = "udp://0.0.0.0:14550 (listen) or udp://192.168.1.10:14550 (send)"
 _PARAMS = {"mode", "local_port", "rcvbuf"}
@@ -35,13 +43,16 @@ class UdpLink(Link):
     local_address : (str, int)
         Bound address (useful with port 0).
     peer : (str, int) or None
-        Where ``write`` sends: the target (send mode) or the last sender heard (listen mode).
+        Where ``write`` sends: the target (send mode) or the locked vehicle (listen mode).
+    peer_lock : PeerLock
+        Which senders are accepted; its counters go into the link process's status.
     dropped_writes, bytes_read, bytes_written, datagrams_read : int
         Counters.
     """
 
-    def __init__(self, parsed: ParsedUri) -> None:
+    def __init__(self, parsed: ParsedUri, options: LinkOptions | None = None) -> None:
         super().__init__(parsed)
+        options = options or LinkOptions()
         if parsed.scheme != "udp":
             raise parsed.error("not a udp:// URI", EXAMPLE)
         unknown = set(parsed.query) - _PARAMS
@@ -84,6 +95,9 @@ class UdpLink(Link):
                 f"cannot open UDP socket for {self.uri}: {exc}",
                 hint="is another program bound to that port? (ss -ulpn)",
             ) from exc
+        self.peer_lock = PeerLock(
+            options.allow_peers, options.vehicle_system_id or None, lock_to=self.peer
+        )
         self._sock.setblocking(False)
         self.local_address = self._sock.getsockname()[:2]
         self._wake_r, self._wake_w = os.pipe()
@@ -110,12 +124,20 @@ class UdpLink(Link):
             if not self._closed.is_set():
                 self._emit("read_error", f"{self.uri}: {exc}")
             return b""
+        sender = (str(sender[0]), int(sender[1]))
+        lock = self.peer_lock
+        was_locked = lock.peer is not None
+        before = len(lock.rejected_from)
+        if not lock.admit(sender, data):
+            if len(lock.rejected_from) > before:  # first rejection of this sender
+                self._emit("peer_rejected", lock.last_rejected or "")
+            return b""
         self.bytes_read += len(data)
         self.datagrams_read += 1
-        if self.mode == "listen" and sender[:2] != self.peer:
-            first = self.peer is None
-            self.peer = sender[:2]
-            self._emit("connected" if first else "peer_changed", f"{sender[0]}:{sender[1]}")
+        if not was_locked:
+            if self.mode == "listen":
+                self.peer = sender
+            self._emit("connected", f"{sender[0]}:{sender[1]} system {lock.locked_system_id}")
         return data
 
     def write(self, data: bytes) -> None:

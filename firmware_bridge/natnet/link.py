@@ -10,6 +10,11 @@ Query parameters: ``iface`` (multicast interface), ``server`` (server address fo
 when multicast), ``cmd_port`` (server command port, default 1510), ``rcvbuf`` (socket receive
 buffer bytes, default 1 MiB). Port 0 binds an ephemeral port (see :attr:`local_address`).
 
+Senders are checked by :class:`~firmware_bridge.natnet.peers.NatNetPeerPolicy`: datagrams only
+from the server's host (configured, or the first frame's host for multicast without
+``?server=``), server info only from its command port. Others are dropped before anyone decodes
+or records them, counted (``policy``) and reported once per sender as a ``peer_rejected`` event.
+
 Follows :class:`firmware_bridge.link.base.Link`: :meth:`read` blocks in ``select`` for at most
 ``timeout_s`` and returns one datagram, ``b""`` on timeout or once closed (no sleep-polling;
 :meth:`close` wakes a blocked reader); :meth:`write` never raises for transport trouble, it
@@ -26,7 +31,8 @@ import struct
 import threading
 
 from firmware_bridge.errors import LinkError
-from firmware_bridge.link.base import Link, ParsedUri, parse_uri
+from firmware_bridge.link.base import Link, LinkOptions, ParsedUri, parse_uri
+from firmware_bridge.natnet.peers import NatNetPeerPolicy
 
 DEFAULT_DATA_PORT = 1511
 DEFAULT_COMMAND_PORT = 1510
@@ -57,7 +63,7 @@ class NatNetLink(Link):
         The socket cannot be bound or the group cannot be joined.
     """
 
-    def __init__(self, parsed: ParsedUri | str):
+    def __init__(self, parsed: ParsedUri | str, options: LinkOptions | None = None):
         if isinstance(parsed, str):
             parsed = parse_uri(parsed)
         super().__init__(parsed)
@@ -80,7 +86,9 @@ class NatNetLink(Link):
             raise parsed.error(str(exc), EXAMPLE) from None
         self.group: str | None = str(addr) if addr.is_multicast else None
         self.interface = str(iface)
-        self._server: str | None = server if self.group else (server or str(addr))
+        self.policy = NatNetPeerPolicy(
+            server if self.group else (server or str(addr)), self.command_port
+        )
         self.datagrams_read = self.bytes_read = self.dropped_writes = 0
         self.last_source: tuple[str, int] | None = None
         self._lock = threading.Lock()
@@ -116,7 +124,7 @@ class NatNetLink(Link):
     @property
     def server(self) -> str | None:
         """Server address for commands: configured, unicast host, or the first sender seen."""
-        return self._server
+        return self.policy.server
 
     def read(self, timeout_s: float) -> bytes:
         """One datagram received within ``timeout_s`` seconds, else ``b""`` (also once closed).
@@ -134,11 +142,17 @@ class NatNetLink(Link):
             if not self._closed.is_set():
                 self._emit("read_error", f"{self.uri}: {exc}")
             return b""
+        policy = self.policy
+        had_server = policy.server is not None
+        before = len(policy.rejected_from)
+        if not policy.admit(src[:2], data):
+            if len(policy.rejected_from) > before:  # first rejection of this sender
+                self._emit("peer_rejected", policy.last_rejected or "")
+            return b""
         self.datagrams_read += 1
         self.bytes_read += len(data)
         self.last_source = src[:2]
-        if self._server is None:
-            self._server = src[0]
+        if not had_server:
             self._emit("connected", f"server {src[0]} (commands to port {self.command_port})")
         return data
 
@@ -149,7 +163,7 @@ class NatNetLink(Link):
         without ``?server=`` before any datagram) or once closed; send errors become
         ``write_error`` events.
         """
-        server = self._server
+        server = self.policy.server
         if server is None or self._closed.is_set():
             self.dropped_writes += 1
             why = "closed" if self._closed.is_set() else "server address unknown (add ?server=)"

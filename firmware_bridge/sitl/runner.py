@@ -102,6 +102,10 @@ class Simulation:
     pilot : "manual" or "script:NAME" (:data:`~firmware_bridge.sitl.pilots.PILOTS`)
     seed : int
     duration : s of simulated time, or None for no end (``outputs`` then never stops)
+    signing_key : 32 bytes, optional
+        MAVLink 2 signing key: commands (MANUAL_CONTROL, COMMAND_LONG, ATT_POS_MOCAP) must then
+        be signed with it; unsigned or wrongly signed ones are rejected and counted
+        (``codec.stats.rejected_signature``), like a PX4 with signing enabled.
     """
 
     def __init__(
@@ -113,6 +117,7 @@ class Simulation:
         vehicle: VehicleSettings | None = None,
         mocap: MocapSettings | None = None,
         system_id: int = 1,
+        signing_key: bytes | None = None,
     ):
         self.scene, self.seed, self.duration, self.pilot_name = scene, seed, duration, pilot
         vs = vehicle or VehicleSettings()
@@ -124,7 +129,12 @@ class Simulation:
         self.vehicle = Vehicle(scene, script, seed, vs)
         self.mocap = mocap or MocapSettings()
         self.mocap_rng = np.random.default_rng([seed, 1])
-        self.codec = MavlinkCodec(system_id=system_id, component_id=1)
+        self.codec = MavlinkCodec(
+            system_id=system_id,
+            component_id=1,
+            signing_key=signing_key,
+            require_signed=signing_key is not None,
+        )
         self.system_id = system_id
         self.intervals = dict(DEFAULT_INTERVALS_NS)
         self.next_due = dict(self.intervals)  # first samples one interval after t = 0

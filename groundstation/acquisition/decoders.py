@@ -44,13 +44,28 @@ from firmware_bridge.mavlink.messages import (
     Timesync,
 )
 from firmware_bridge.mavlink.timesync import TimesyncEstimator
-from firmware_bridge.natnet import FrameOfData, NatNetParseError, ServerInfo, parse_packet
+from firmware_bridge.natnet import (
+    SUPPORTED_VERSIONS,
+    FrameOfData,
+    NatNetParseError,
+    ServerInfo,
+    parse_packet,
+)
 from groundstation.bus.envelope import Envelope, Header
 from groundstation.bus.topics import TOPICS
 
 MAV_TYPE_GCS = 6
 _NAN3 = (math.nan,) * 3
 _NAN4 = (math.nan,) * 4
+#: Header times are int64 ns on the bus: a sample whose time does not fit (a corrupt or forged
+#: HIGHRES_IMU time_usec up to 2**64-1 us, a NatNet timestamp of 1e291 s) is never published.
+INT64_MAX = 2**63 - 1
+_MAX_TIMESTAMP_S = INT64_MAX / 1e9
+
+
+def in_int64(*values: int) -> bool:
+    """True if every value fits a signed 64-bit integer (bus header and payload times)."""
+    return all(-INT64_MAX - 1 <= v <= INT64_MAX for v in values)
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,6 +128,15 @@ class StreamCounters:
         Samples dropped because a value was NaN/inf (counted, never published).
     ignored : int
         Valid messages that map to no sample (server info, unknown NatNet messages, ...).
+    out_of_range : int
+        Samples whose time does not fit int64 ns (MAVLink: dropped; NatNet: the pose is kept
+        with source time 0, its station time comes from the receive time).
+    refused_versions : int
+        NatNet server info announcing a bitstream version this decoder cannot read (ignored:
+        switching to it would stop all mocap).
+    version_changes : int
+        NatNet server info that changed the bitstream version after frames were decoded (each
+        also appended to ``NatNetStreamDecoder.events``).
     """
 
     chunks: int = 0
@@ -121,6 +145,9 @@ class StreamCounters:
     bad: int = 0
     nonfinite: int = 0
     ignored: int = 0
+    out_of_range: int = 0
+    refused_versions: int = 0
+    version_changes: int = 0
 
     def count(self, topic: str) -> None:
         self.samples[topic] = self.samples.get(topic, 0) + 1
@@ -195,6 +222,13 @@ class MavlinkStreamDecoder:
         return self.feed_records(data, recv_ns)[1]
 
     def _record(self, rec: Record, recv_ns: int) -> Decoded | None:
+        d = self._sample(rec, recv_ns)
+        if d is not None and not in_int64(d.source_ns, d.recv_ns, d.payload["t_station_ns"]):
+            self.counters.out_of_range += 1
+            return None
+        return d
+
+    def _sample(self, rec: Record, recv_ns: int) -> Decoded | None:
         if isinstance(rec, ImuSample):
             if not _finite(rec.accel, rec.gyro):
                 self.counters.nonfinite += 1
@@ -208,15 +242,16 @@ class MavlinkStreamDecoder:
                 recv_ns,
             )
         if isinstance(rec, AttitudeSample):
-            if not _finite(rec.quaternion, rec.rates) or not any(rec.quaternion):
+            q = np.array(rec.quaternion)
+            norm = float(np.linalg.norm(q)) if _finite(rec.quaternion, rec.rates) else math.nan
+            if not norm > 1e-12 or not math.isfinite(norm):  # zero, denormal or overflowing
                 self.counters.nonfinite += 1
                 return None
-            q = np.array(rec.quaternion)
             src = rec.time_source_ns
             return Decoded(
                 "samples.attitude",
                 {"t_station_ns": self.t_station_ns(src, recv_ns)},
-                {"q_wxyz": q / np.linalg.norm(q), "rates_radps": np.array(rec.rates)},
+                {"q_wxyz": q / norm, "rates_radps": np.array(rec.rates)},
                 src,
                 recv_ns,
             )
@@ -231,11 +266,14 @@ class MavlinkStreamDecoder:
                     self.vehicle = (rec.system_id, rec.component_id)
             return None
         if isinstance(rec, MocapPose):
-            if not _finite(rec.position, rec.quaternion) or not any(rec.quaternion):
+            try:
+                if not _finite(rec.position, rec.quaternion):
+                    raise AxisError("non-finite pose")
+                p = ned_to_enu(rec.position)
+                q = quat_ned_frd_to_enu_flu(rec.quaternion)  # AxisError: zero/denormal norm
+            except AxisError:
                 self.counters.nonfinite += 1
                 return None
-            p = ned_to_enu(rec.position)
-            q = quat_ned_frd_to_enu_flu(rec.quaternion)
             return Decoded(
                 "samples.pose",
                 {
@@ -291,11 +329,38 @@ class NatNetStreamDecoder:
         self.counters = StreamCounters()
         self.frames = 0
         self.last_error: str | None = None
+        self.events: list[str] = []  # version changes and refusals, oldest first
+
+    def _server_info(self, info: ServerInfo) -> None:
+        """Follow a server's bitstream version, but never silently and never to one we cannot
+        read (a spoofed 2.0 used to stop all mocap for the rest of the session)."""
+        c = self.counters
+        c.ignored += 1
+        new = info.bitstream_version
+        if new == self.version:
+            return
+        old = f"{self.version[0]}.{self.version[1]}"
+        if new not in SUPPORTED_VERSIONS:
+            c.refused_versions += 1
+            self.events.append(
+                f"NatNet server info announces unsupported version {new[0]}.{new[1]}: "
+                f"still decoding {old}"
+            )
+            return
+        if self.frames:
+            c.version_changes += 1
+            self.events.append(
+                f"NATNET VERSION CHANGED {old} -> {new[0]}.{new[1]} after {self.frames} frames "
+                f"(server info from {info.app_name!r})"
+            )
+        self.version = new
 
     def feed(self, data: bytes, recv_ns: int) -> list[Decoded]:
         """Decode one datagram received at ``recv_ns``: one pose per rigid body.
 
-        Bad datagrams are counted (``counters.bad``, ``last_error``), never raised.
+        Bad datagrams are counted (``counters.bad``, ``last_error``), never raised. Server info
+        may change the bitstream version (see :meth:`_server_info`); who may send it is the
+        link's job (:class:`firmware_bridge.natnet.peers.NatNetPeerPolicy`).
         """
         recv_ns = int(recv_ns)
         c = self.counters
@@ -308,14 +373,23 @@ class NatNetStreamDecoder:
             self.last_error = exc.message
             return []
         if isinstance(msg, ServerInfo):
-            self.version = msg.bitstream_version
-            c.ignored += 1
+            self._server_info(msg)
             return []
         if not isinstance(msg, FrameOfData):
             c.ignored += 1
             return []
         self.frames += 1
-        source_ns = int(round(msg.timestamp_s * 1e9)) if math.isfinite(msg.timestamp_s) else 0
+        ts = msg.timestamp_s
+        if math.isfinite(ts) and 0 <= ts < _MAX_TIMESTAMP_S:
+            source_ns = min(int(round(ts * 1e9)), INT64_MAX)
+        else:  # NaN, negative or beyond int64 ns (1e291 s raised OverflowError here)
+            source_ns = 0
+            c.out_of_range += 1
+            self.last_error = f"NatNet frame {msg.frame_id}: timestamp {ts!r} s out of range"
+        t_station_ns = recv_ns - self.mocap_latency_ns
+        if not in_int64(recv_ns, t_station_ns):
+            c.out_of_range += 1
+            return []
         out = []
         for body in msg.rigid_bodies:
             valid = bool(body.tracking_valid)
@@ -329,13 +403,9 @@ class NatNetStreamDecoder:
             out.append(
                 Decoded(
                     "samples.pose",
-                    {
-                        "body_id": int(body.id),
-                        "valid": valid,
-                        "t_station_ns": recv_ns - self.mocap_latency_ns,
-                    },
+                    {"body_id": int(body.id), "valid": valid, "t_station_ns": t_station_ns},
                     {"position_m": np.asarray(p, float), "q_wxyz": np.asarray(q, float)},
-                    max(0, source_ns),
+                    source_ns,
                     recv_ns,
                 )
             )

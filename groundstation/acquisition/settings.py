@@ -40,6 +40,14 @@ class AcquisitionSettings:
         How long a publisher waits for its subscribers before it starts anyway (with a warning).
     replay_flow_window : int
         Credit window of the replay source at speed=max (messages per topic).
+    link_allow_peers : tuple of str
+        UDP firmware links: the only senders accepted ("HOST" or "HOST:PORT"). Empty: lock to the
+        first vehicle heard (its address and system id); others are counted and ignored.
+    vehicle_system_id : int
+        UDP firmware links: lock only to this MAVLink system id (0 = the first one heard).
+    signing_key_file : str
+        MAVLink 2 signing key (32 raw bytes or 64 hex characters) for the command uplink: every
+        frame the station sends is signed with it. Empty: no signing (``live --signing-key``).
     """
 
     imu_rate_hz: float = 200.0
@@ -57,6 +65,9 @@ class AcquisitionSettings:
     target_system: int = 1
     subscriber_timeout_s: float = 20.0
     replay_flow_window: int = 256
+    link_allow_peers: tuple[str, ...] = ()
+    vehicle_system_id: int = 0
+    signing_key_file: str = ""
 
     def __post_init__(self) -> None:
         for name in ("imu_rate_hz", "attitude_rate_hz", "timesync_period_s", "health_period_s"):
@@ -67,6 +78,21 @@ class AcquisitionSettings:
         natnet_version_tuple(self.natnet_version)
         if self.timesync_window < 1 or self.replay_flow_window < 1:
             raise ConfigError("acquisition.timesync_window and replay_flow_window must be >= 1")
+        if not 0 <= self.vehicle_system_id <= 255:
+            raise ConfigError(
+                f"acquisition.vehicle_system_id={self.vehicle_system_id} must be in 0..255 "
+                "(0 = lock to the first vehicle heard)"
+            )
+        from firmware_bridge.errors import UriError
+        from firmware_bridge.link.peer import parse_peer
+
+        for peer in self.link_allow_peers:
+            try:
+                parse_peer(peer)
+            except UriError as exc:
+                raise ConfigError(
+                    f"acquisition.link_allow_peers: {exc.message}", exc.hint
+                ) from None
 
     @property
     def natnet_version_tuple(self) -> tuple[int, int]:

@@ -25,6 +25,15 @@ One message travels as ZeroMQ multipart frames::
 - ``buffer_i``: the raw C-order bytes of array ``i``; decoding wraps them with ``np.frombuffer``
   (zero-copy, read-only). Only little-endian numeric/bool dtypes are allowed (no object dtype).
 
+Decoding takes bytes from other processes and from recordings, so it is bounded and raises only
+:class:`EnvelopeError` (fuzzed: ``groundstation bench fuzz --target envelope``): topic frame
+<= :data:`MAX_TOPIC_LEN` bytes, meta frame <= :data:`MAX_META_BYTES`, JSON nesting <=
+:data:`MAX_JSON_DEPTH`, integers within int64/uint64 (at most 20 digits: a 5,000-digit integer
+would otherwise cost seconds or raise ``ValueError``), floats finite (``1e999`` parses to inf and
+``NaN`` is not JSON), at most :data:`MAX_ARRAYS` arrays of at most :data:`MAX_NDIM` dimensions,
+each at most :data:`MAX_DIM` long, spanning at most :data:`MAX_ARRAY_BYTES` even when another
+dimension is 0 (a zero-size array with a dimension of 2**70 made numpy raise ``ValueError``).
+
 The single-blob form (:func:`to_bytes` / :func:`from_bytes`) length-prefixes the frames so a
 recorder can store a message as one MCAP record and a replay can republish it byte-for-byte::
 
@@ -58,6 +67,15 @@ ALLOWED_DTYPES = frozenset(
     ["|b1", "|i1", "|u1", "<i2", "<u2", "<i4", "<u4", "<i8", "<u8"]
     + ["<f2", "<f4", "<f8", "<c8", "<c16"]
 )
+MAX_TOPIC_LEN = 255
+MAX_META_BYTES = 1 << 20
+MAX_JSON_DEPTH = 32
+MAX_ARRAYS = 256
+MAX_NDIM = 8
+MAX_DIM = 1 << 40
+MAX_ARRAY_BYTES = 1 << 40
+_MAX_INT_DIGITS = 20  # uint64 max has 20 digits
+_INT_MIN, _INT_MAX = -(2**63), 2**64 - 1
 _BLOB_COUNT = struct.Struct("<I")
 _BLOB_LEN = struct.Struct("<Q")
 _MAX_FRAMES = 1 << 16
@@ -223,11 +241,50 @@ def encode(env: Envelope) -> list[bytes | memoryview]:
     return frames
 
 
+def _json_int(text: str) -> int:
+    if len(text.lstrip("-")) > _MAX_INT_DIGITS:
+        raise EnvelopeError(f"integer with {len(text)} digits in meta (limit {_MAX_INT_DIGITS})")
+    value = int(text)
+    if not _INT_MIN <= value <= _INT_MAX:
+        raise EnvelopeError(f"integer {value} in meta is outside int64/uint64")
+    return value
+
+
+def _json_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise EnvelopeError(f"number {text[:40]!r} in meta overflows to {value}")
+    return value
+
+
+def _json_constant(text: str) -> float:
+    raise EnvelopeError(f"{text} is not allowed in meta (JSON has no NaN/Infinity)")
+
+
+def _check_depth(value: Any, depth: int = 0) -> None:
+    if depth > MAX_JSON_DEPTH:
+        raise EnvelopeError(f"meta nests deeper than {MAX_JSON_DEPTH} levels")
+    if isinstance(value, dict):
+        for v in value.values():
+            _check_depth(v, depth + 1)
+    elif isinstance(value, list):
+        for v in value:
+            _check_depth(v, depth + 1)
+
+
 def _parse_meta(frame: Buffer) -> tuple[dict[str, Any], list[tuple[str, str, tuple[int, ...]]]]:
+    raw = bytes(frame)
+    if len(raw) > MAX_META_BYTES:
+        raise EnvelopeError(f"meta frame of {len(raw)} bytes exceeds {MAX_META_BYTES}")
     try:
-        meta = json.loads(bytes(frame))
+        meta = json.loads(
+            raw, parse_int=_json_int, parse_float=_json_float, parse_constant=_json_constant
+        )
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise EnvelopeError(f"meta frame is not valid JSON: {exc}") from None
+    except RecursionError:
+        raise EnvelopeError(f"meta nests deeper than {MAX_JSON_DEPTH} levels") from None
+    _check_depth(meta)
     if not isinstance(meta, dict) or set(meta) != {"a", "p"}:
         raise EnvelopeError("meta frame must be a JSON object with exactly the keys 'a' and 'p'")
     payload, descs = meta["p"], meta["a"]
@@ -235,22 +292,36 @@ def _parse_meta(frame: Buffer) -> tuple[dict[str, Any], list[tuple[str, str, tup
         raise EnvelopeError(f"payload must be a JSON object, got {type(payload).__name__}")
     if not isinstance(descs, list):
         raise EnvelopeError("array descriptors ('a') must be a JSON list")
+    if len(descs) > MAX_ARRAYS:
+        raise EnvelopeError(f"meta declares {len(descs)} arrays (limit {MAX_ARRAYS})")
     out: list[tuple[str, str, tuple[int, ...]]] = []
     for d in descs:
         ok = isinstance(d, list) and len(d) == 3 and isinstance(d[0], str)
         ok = ok and isinstance(d[1], str) and isinstance(d[2], list)
         ok = ok and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in d[2])
         if not ok:
-            raise EnvelopeError(f"bad array descriptor {d!r} (expected [name, dtype, shape])")
+            raise EnvelopeError(f"bad array descriptor {_short(d)} (expected [name, dtype, shape])")
         if d[1] not in ALLOWED_DTYPES:
             raise EnvelopeError(
-                f"array {d[0]!r}: dtype {d[1]!r} not allowed (allowed: {sorted(ALLOWED_DTYPES)})"
+                f"array {_short(d[0])}: dtype {_short(d[1])} not allowed "
+                f"(allowed: {sorted(ALLOWED_DTYPES)})"
+            )
+        if len(d[2]) > MAX_NDIM or any(s > MAX_DIM for s in d[2]):
+            raise EnvelopeError(
+                f"array {_short(d[0])}: shape {_short(d[2])} exceeds the limits "
+                f"({MAX_NDIM} dimensions of at most {MAX_DIM})"
             )
         out.append((d[0], d[1], tuple(d[2])))
     names = [d[0] for d in out]
     if len(set(names)) != len(names):
-        raise EnvelopeError(f"duplicate array names in {names}")
+        raise EnvelopeError(f"duplicate array names in {_short(names)}")
     return payload, out
+
+
+def _short(value: Any, limit: int = 80) -> str:
+    """``repr`` cut to ``limit`` characters (error messages never echo megabytes)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def decode(frames: Sequence[Buffer], table: Mapping[str, Topic] | None = None) -> Envelope:
@@ -272,8 +343,11 @@ def decode(frames: Sequence[Buffer], table: Mapping[str, Topic] | None = None) -
     """
     if len(frames) < 3:
         raise EnvelopeError(f"frame count mismatch: {len(frames)} frames, need at least 3")
+    topic_b = bytes(memoryview(frames[0])[: MAX_TOPIC_LEN + 1])
+    if len(topic_b) > MAX_TOPIC_LEN:
+        raise EnvelopeError(f"topic frame longer than {MAX_TOPIC_LEN} bytes")
     try:
-        topic = bytes(frames[0]).decode("utf-8")
+        topic = topic_b.decode("utf-8")
     except UnicodeDecodeError:
         raise EnvelopeError("topic frame is not valid UTF-8") from None
     header = unpack_header(frames[1])
@@ -286,11 +360,17 @@ def decode(frames: Sequence[Buffer], table: Mapping[str, Topic] | None = None) -
     arrays: dict[str, np.ndarray] = {}
     for (name, dtype_s, shape), buf in zip(descs, frames[3:], strict=True):
         dtype = np.dtype(dtype_s)
+        if math.prod(max(d, 1) for d in shape) * dtype.itemsize > MAX_ARRAY_BYTES:
+            # numpy refuses such shapes even when another dimension is 0
+            raise EnvelopeError(
+                f"array {_short(name)}: shape {shape} of {dtype_s} spans more than "
+                f"{MAX_ARRAY_BYTES} bytes (even as a zero-size array)"
+            )
         mv = memoryview(buf).cast("B")
         expected = math.prod(shape) * dtype.itemsize
         if mv.nbytes != expected:
             raise EnvelopeError(
-                f"array {name!r}: buffer holds {mv.nbytes} bytes but shape {shape} "
+                f"array {_short(name)}: buffer holds {mv.nbytes} bytes but shape {shape} "
                 f"of {dtype_s} needs {expected}"
             )
         arrays[name] = np.frombuffer(mv, dtype=dtype).reshape(shape)

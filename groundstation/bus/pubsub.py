@@ -368,9 +368,12 @@ class Subscriber:
             env = decode(frames, self._table)
             if env.topic not in self.topics:
                 raise SchemaError(f"topic {env.topic!r} was not subscribed")
-        except EnvelopeError as exc:
+        except Exception as exc:  # noqa: BLE001 - any undecodable message is skipped, counted
+            # decode raises only EnvelopeError (fuzzed), but a receiver must never die of a
+            # message: anything else is counted the same way and named in last_error.
             self.bad_messages += 1
-            self.last_error = str(exc)
+            kind = "" if isinstance(exc, EnvelopeError) else f"{type(exc).__name__}: "
+            self.last_error = (kind + str(exc))[:300]
             name = bytes(frames[0][:64]).decode("utf-8", "replace") if frames else "?"
             self.tracker.bad(name if name in self.topics else "?")
             return None

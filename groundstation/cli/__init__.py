@@ -16,6 +16,7 @@ import importlib
 import sys
 from collections.abc import Callable, Sequence
 
+from firmware_bridge.errors import BridgeError
 from groundstation.errors import GroundstationError
 
 
@@ -107,6 +108,11 @@ COMMANDS: dict[tuple[str, ...], Command] = {
         "speed",
         "fit and prediction times of the estimators and the default mapper at the paper's sizes",
     ),
+    ("bench", "fuzz"): Command(
+        "bench",
+        "fuzz",
+        "millions of hostile inputs per parser: only declared errors, no slow input, no hang",
+    ),
 }
 
 
@@ -161,7 +167,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv[len(match) :])
     try:
         return int(run(args) or 0)
-    except GroundstationError as exc:
+    except (GroundstationError, BridgeError) as exc:  # e.g. a bad link URI (firmware_bridge)
         print(f"error: {exc.message}", file=sys.stderr)
         if exc.hint:
             print(f"hint: {exc.hint}", file=sys.stderr)

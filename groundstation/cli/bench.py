@@ -506,3 +506,63 @@ def run_speed(args: argparse.Namespace) -> int:
     (out / "speed.json").write_text(json.dumps(rows, indent=1) + "\n")
     print(text)
     return 0
+
+
+# ------------------------------ bench fuzz
+
+
+def add_fuzz_arguments(parser: argparse.ArgumentParser) -> None:
+    """Command-line options of ``groundstation bench fuzz``."""
+    from groundstation.bench import fuzz
+
+    parser.add_argument(
+        "--target",
+        action="append",
+        default=None,
+        metavar="NAME",
+        help=f"parser to fuzz, repeatable or comma-separated ({', '.join(fuzz.TARGETS)}; "
+        "default: all)",
+    )
+    parser.add_argument(
+        "--inputs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="inputs per target (default 1,000,000; ulog 5,000: pyulog is slow and stalls)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="input i = f(seed, target, i)")
+    parser.add_argument("--out", default="results/fuzz", help="results and reproducers folder")
+    parser.add_argument(
+        "--hang-s",
+        type=float,
+        default=None,
+        help=f"an input running longer is a hang (default {fuzz.HANG_S:g} s)",
+    )
+
+
+def run_fuzz(args: argparse.Namespace) -> int:
+    """Fuzz each target in a watched child; print the table; 1 if anything was found."""
+    from groundstation.bench import fuzz
+
+    names = [n.strip() for t in (args.target or [",".join(fuzz.TARGETS)]) for n in t.split(",")]
+    names = [n for n in names if n]
+    for n in names:
+        if n not in fuzz.TARGETS:
+            raise ConfigError(
+                f"unknown fuzz target {n!r}", hint=f"one of {', '.join(fuzz.TARGETS)}"
+            )
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = []
+    for n in names:
+        inputs = args.inputs if args.inputs is not None else fuzz.TARGETS[n].default_inputs
+        print(f"fuzz {n}: {inputs:,} inputs ...", file=sys.stderr, flush=True)
+        r = fuzz.run_target(
+            n, inputs, seed=args.seed, out=out, hang_s=args.hang_s,
+            progress=lambda m: print(m, file=sys.stderr, flush=True),
+        )  # fmt: skip
+        results.append(r)
+        fuzz.write_results(results, out, args.seed)
+    print(fuzz.table(results))
+    print(f"results: {out / 'fuzz.md'}, {out / 'fuzz.json'}", file=sys.stderr)
+    return 0 if all(r.clean for r in results) else 1

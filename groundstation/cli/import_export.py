@@ -1,8 +1,10 @@
 """``groundstation import csv|ulog|tlog`` and ``groundstation export tlog``: outside recordings
-into the station's MCAP layout, and a recording's MAVLink back out.
+into the station's MCAP layout, and a recording's MAVLink back out. A failed import leaves no
+output file behind (``importers.atomic_output``) and prints ``error:``/``hint:``, exit 2.
 
 - ``groundstation import csv SRC --out LOG.mcap``: IMU CSV (aggressive_flight layout) -> MCAP.
-- ``groundstation import ulog SRC --out LOG.mcap``: PX4 ULog -> MCAP.
+- ``groundstation import ulog SRC --out LOG.mcap [--time-limit S]``: PX4 ULog -> MCAP (pyulog
+  runs under a time limit: a corrupted log that makes it loop is reported, not waited for).
 - ``groundstation import tlog SRC --out LOG.mcap``: MAVLink telemetry log -> MCAP.
 - ``groundstation export tlog LOG.mcap --out FILE.tlog``: a recording's MAVLink -> tlog.
 """
@@ -67,6 +69,14 @@ def add_import_ulog_arguments(parser: argparse.ArgumentParser) -> None:
         default="natnet",
         help="encode positions as NatNet 4.1 frames (default) or MAVLink ATT_POS_MOCAP",
     )
+    parser.add_argument(
+        "--time-limit",
+        type=float,
+        default=None,
+        metavar="S",
+        help="stop pyulog after S seconds and report the file as unreadable "
+        "(default: 20 s + 2 s per MB; pyulog can loop for ever on a corrupted log)",
+    )
 
 
 def run_import_ulog(args: argparse.Namespace) -> int:
@@ -79,6 +89,7 @@ def run_import_ulog(args: argparse.Namespace) -> int:
         args.out,
         pose_transport=args.pose,
         created_by=f"groundstation import ulog {args.src} --out {args.out}",
+        time_limit_s=getattr(args, "time_limit", None),
     )
     print(report.describe())
     return 0

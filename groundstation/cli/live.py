@@ -30,6 +30,10 @@ lost nothing (1 otherwise). ``--summary FILE`` writes the summary as JSON.
 
 Workers run in one process group owned by this process and die with it (parent-death signal):
 a SIGKILLed ``live`` leaves no worker behind.
+
+``--signing-key FILE`` (32 raw bytes or 64 hex characters) signs every frame the link process
+sends to the vehicle with MAVLink 2 signing (``acquisition.signing_key_file``); a vehicle (or
+``groundstation sitl --signing-key FILE``) holding the same key then rejects unsigned commands.
 """
 
 from __future__ import annotations
@@ -105,6 +109,13 @@ def add_live_arguments(parser: argparse.ArgumentParser) -> None:
         "--set", action="append", default=[], metavar="KEY=VALUE", help="override a setting"
     )
     parser.add_argument("--session-root", default="/tmp", help="parent of the session directory")
+    parser.add_argument(
+        "--signing-key",
+        default=None,
+        metavar="FILE",
+        help="MAVLink 2 signing key (32 raw bytes or 64 hex characters): sign every command "
+        "sent to the vehicle (sets acquisition.signing_key_file)",
+    )
 
 
 def _available(module: str) -> bool:
@@ -112,6 +123,24 @@ def _available(module: str) -> bool:
         return importlib.util.find_spec(module) is not None
     except (ImportError, ValueError):
         return False
+
+
+def _signing_sets(args: argparse.Namespace) -> list[str]:
+    """``--signing-key FILE`` as the setting the link process reads (absolute path)."""
+    key = getattr(args, "signing_key", None)
+    return [] if key is None else [f"acquisition.signing_key_file={Path(key).resolve()}"]
+
+
+def _check_signing(resolved: Resolved) -> None:
+    """A signing key that cannot be read fails here, before any worker starts."""
+    settings = resolved.config.acquisition
+    if settings.signing_key_file:
+        from firmware_bridge.mavlink.signing import SigningKeyError, load_signing_key
+
+        try:
+            load_signing_key(settings.signing_key_file)
+        except SigningKeyError as exc:
+            raise ConfigError(exc.message, exc.hint) from None
 
 
 def plan(args: argparse.Namespace, session_id: str) -> tuple[Session, list[WorkerSpec]]:
@@ -210,7 +239,8 @@ def _board(t0: int, resolved: Resolved, args: argparse.Namespace) -> StatusBoard
 def run_live(args: argparse.Namespace) -> int:
     """Run the live session until Ctrl-C / SIGTERM / ``--duration``; 0 when it ended cleanly
     and lost no data."""
-    resolved = resolve(args.config, args.set)
+    resolved = resolve(args.config, [*args.set, *_signing_sets(args)])
+    _check_signing(resolved)
     if args.duration is not None and not args.duration > 0:
         raise ConfigError(f"--duration {args.duration} must be > 0")
     if not args.segment_s > 0:

@@ -10,6 +10,10 @@ reproduces the live detector and mapper; keys this version does not know are rep
 skipped), ``--config FILE`` and ``--set section.key=value`` apply on top (every section of
 ``groundstation config show``). ``LOG`` may be a session's first file or its folder: every
 segment is replayed.
+
+A damaged recording (corrupt chunks, a truncated file that lost data) is first checked chunk by
+chunk; the replay then runs on what can be read, says what was dropped, and exits with status
+:data:`EXIT_DAMAGED` unless ``--allow-damaged`` is given (then 0).
 """
 
 from __future__ import annotations
@@ -21,6 +25,8 @@ from pathlib import Path
 
 from groundstation.errors import ConfigError, InputDataError
 
+#: Exit status of a replay that ran on a damaged recording without ``--allow-damaged``.
+EXIT_DAMAGED = 3
 #: Report keys printed on stdout (those present in the report).
 REPORT_SUMMARY_KEYS = (
     "duration_s", "contacts", "contacts_per_min", "observations", "refits", "refit_s_median",
@@ -70,6 +76,38 @@ def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="with --map final: also fit N times at evenly spaced log times",
     )
+    parser.add_argument(
+        "--allow-damaged",
+        action="store_true",
+        help=f"exit 0 even if the recording is damaged (default: exit {EXIT_DAMAGED})",
+    )
+
+
+def check_damage(log: Path) -> str | None:
+    """Decode every chunk of ``log`` (every segment of a session) once; what was lost, or None
+    for an intact recording.
+
+    Raises
+    ------
+    RecordingError
+        Not a recording at all (or unreadable).
+    """
+    import warnings
+
+    from groundstation.acquisition.reader import TruncatedRecordingWarning, open_recording
+    from groundstation.acquisition.segments import find_segments
+
+    lost = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TruncatedRecordingWarning)  # reported below instead
+        segments = find_segments(log)
+        for path in segments:
+            with open_recording(path) as rec:
+                rec.verify()
+                if rec.damaged:
+                    name = f"{path.name}: " if len(segments) > 1 else ""
+                    lost.append(name + rec.damage_text())
+    return "; ".join(lost) or None
 
 
 def _progress_offline(quiet: bool):
@@ -128,6 +166,9 @@ def run_replay(args: argparse.Namespace) -> int:
             "--map final runs in process at full speed",
             hint="drop --processes and --speed, or use --map live",
         )
+    damage = check_damage(log)
+    if damage is not None:
+        print(f"warning: recording {log.name} is damaged: {damage}", file=sys.stderr)
     if args.processes or math.isfinite(args.speed):
         from groundstation.pipeline.multiprocess import run_multiprocess
 
@@ -169,4 +210,12 @@ def run_replay(args: argparse.Namespace) -> int:
     gaps = sum(v for v in result.gaps.values())
     if gaps:
         print(f"warning: {gaps} sequence gaps on the bus: {result.gaps}", file=sys.stderr)
+    if damage is not None and not getattr(args, "allow_damaged", False):
+        print(f"error: replayed a damaged recording: {damage}", file=sys.stderr)
+        print(
+            "hint: the outputs cover only what could be read; pass --allow-damaged to accept "
+            "that (exit 0)",
+            file=sys.stderr,
+        )
+        return EXIT_DAMAGED
     return 0

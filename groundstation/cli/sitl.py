@@ -204,6 +204,14 @@ def add_sitl_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="JSON lines: receive time of each MANUAL_CONTROL and each vehicle mode change",
     )
+    parser.add_argument(
+        "--signing-key",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="MAVLink 2 signing key: accept only commands signed with it (unsigned or wrongly "
+        "signed MANUAL_CONTROL / COMMAND_LONG / ATT_POS_MOCAP are rejected and counted)",
+    )
     parser.add_argument("--mocap-up", choices=("y", "z"), default="y", help="Motive up axis")
     parser.add_argument(
         "--mocap-drop",
@@ -311,7 +319,12 @@ def _run(args: argparse.Namespace) -> int:
         drop_probability=args.mocap_drop,
         position_noise=max(0.0, args.mocap_noise),
     )
-    sim = Simulation(scene, pilot, args.seed, args.duration, vs, mocap)
+    key = None
+    if getattr(args, "signing_key", None) is not None:
+        from firmware_bridge.mavlink.signing import load_signing_key
+
+        key = load_signing_key(args.signing_key)
+    sim = Simulation(scene, pilot, args.seed, args.duration, vs, mocap, signing_key=key)
     if args.record is not None:
         return _record(args, sim)
 
@@ -363,7 +376,8 @@ def _run(args: argparse.Namespace) -> int:
         print(
             f"sitl t={t:7.1f} s  mode {sim.vehicle.mode:<8} mavlink {st.mavlink_frames} "
             f"mocap {st.mocap_frames}  dropped {dropped}  rx cmds {st.commands} "
-            f"manual {st.manual_controls}",
+            f"manual {st.manual_controls}"
+            + (f"  unsigned rejected {sim.codec.stats.rejected_signature}" if key else ""),
             file=sys.stderr,
             flush=True,
         )

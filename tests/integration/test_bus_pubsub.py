@@ -67,6 +67,50 @@ def test_bad_messages_are_skipped_and_counted(zctx):
         raw.close()
 
 
+def test_hostile_messages_are_counted_and_the_subscriber_lives_on(zctx, monkeypatch):
+    """The fuzz crash kinds (5,000-digit integer, deep JSON nesting, zero-size array with huge
+    dimensions) over a real socket, plus an unexpected exception inside decode: each is skipped
+    and counted; the good message after them still arrives."""
+    import groundstation.bus.pubsub as pubsub
+
+    huge_int = [b"samples.imu", encode(Envelope("samples.imu", Header("imu_sample", 1, 0, 0)))[1]]
+    header = bytes(huge_int[1])
+    hostile = [
+        [b"samples.imu", header, b'{"a":[],"p":{"t_station_ns":' + b"9" * 5000 + b"}}"],
+        [b"samples.imu", header, b'{"a":[],"p":{"x":' + b"[" * 50_000 + b"]" * 50_000 + b"}}"],
+        [b"samples.imu", header, b'{"a":[["accel_mps2","<f8",[0,1180591620717411303424]]],'
+         b'"p":{}}', b""],
+    ]  # fmt: skip
+    raw = zctx.socket(zmq.PUB)
+    raw.linger = 0
+    port = raw.bind_to_random_port("tcp://127.0.0.1")
+    pub = Publisher(topics=["samples.imu"], context=zctx)
+    sub = Subscriber([f"tcp://127.0.0.1:{port}", *pub.endpoints], ["samples.imu"], context=zctx)
+    real_decode = pubsub.decode
+
+    def flaky_decode(frames, table=None):
+        if bytes(frames[-1]) == b"boom":
+            raise RuntimeError("unexpected")
+        return real_decode(frames, table)
+
+    monkeypatch.setattr(pubsub, "decode", flaky_decode)
+    try:
+        pub.wait_for_subscribers(1, timeout_s=10)
+        time.sleep(0.3)  # plain PUB has no handshake: let the subscription reach it
+        for frames in hostile:
+            raw.send_multipart(frames)
+        raw.send_multipart([b"samples.imu", header, b"boom"])
+        good = pub.publish("samples.imu", arrays=IMU)
+        got = _drain(sub)
+        assert [e.header.seq for e in got] == [good.header.seq]
+        assert sub.bad_messages == 4 and sub.stats["samples.imu"].bad == 4
+        assert "RuntimeError: unexpected" in sub.last_error
+    finally:
+        sub.close()
+        pub.close()
+        raw.close()
+
+
 def test_latest_value_topics_drop_while_lossless_topics_keep_everything(zctx):
     n = 40
     mesh = {

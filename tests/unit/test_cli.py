@@ -42,3 +42,41 @@ def test_config_show_prints_toml(capsys):
     assert cli.main(["config", "show"]) == 0
     out = capsys.readouterr().out
     assert "[mapping]" in out and "lengthscale = 0.25" in out
+
+
+def test_bad_link_uris_are_errors_without_a_traceback(capsys, tmp_path):
+    """A bad link scheme printed a traceback (issue 14): firmware_bridge's UriError is not a
+    GroundstationError, so the command line did not catch it."""
+    for argv in (
+        ["live", "--link", "foo://x", "--no-viewer", "--no-mapping", "--duration", "1"],
+        ["live", "--link", "udp://127.0.0.1:14550", "--mocap", "bogus:nothing", "--no-viewer"],
+        ["record", "--link", "foo://x", "--out", str(tmp_path / "x.mcap"), "--duration", "1"],
+    ):
+        assert cli.main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("error:") and "hint:" in err and "Traceback" not in err, err
+
+
+def test_live_signing_key_errors_name_the_file(capsys, tmp_path):
+    bad = tmp_path / "short.key"
+    bad.write_bytes(b"0123")
+    for key, words in ((bad, "32 raw bytes or 64 hex"), (tmp_path / "missing.key", "cannot read")):
+        argv = ["live", "--link", "udp://127.0.0.1:14550", "--signing-key", str(key)]
+        assert cli.main([*argv, "--no-viewer", "--duration", "1"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error:") and words in err and str(key) in err, err
+
+
+def test_live_signing_key_reaches_the_link_process_as_a_setting(tmp_path):
+    import argparse
+
+    from groundstation.cli.live import add_live_arguments, plan
+
+    key = tmp_path / "k.hex"
+    key.write_text("ab" * 32)
+    parser = argparse.ArgumentParser()
+    add_live_arguments(parser)
+    args = parser.parse_args(["--link", "udp://127.0.0.1:14550", "--signing-key", str(key)])
+    _, specs = plan(args, "s1")
+    link = next(s for s in specs if s.name == "link")
+    assert f"acquisition.signing_key_file={key.resolve()}" in link.argv

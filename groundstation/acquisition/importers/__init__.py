@@ -14,6 +14,10 @@ them and records them in the layout of :mod:`groundstation.acquisition.layout`:
 
 Replay then runs the same decoders on these bytes. Log time = publish time = source time.
 
+Failure never leaves output behind: every importer writes to a hidden temporary file beside
+``out`` and renames it into place only when the import succeeded (:func:`atomic_output`); bad
+input raises :class:`ImportDataError` naming the problem (fuzzed: ``groundstation bench fuzz``).
+
 Modules: :mod:`.csv_imu` (aggressive_flight CSV), :mod:`.ulog` (PX4 ULog), :mod:`.tlog`
 (MAVLink telemetry logs, copied frame by frame), :mod:`.export_tlog` (recording -> tlog), and
 the command modules ``cli_*``.
@@ -23,7 +27,8 @@ from __future__ import annotations
 
 import os
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -42,6 +47,9 @@ MOCAP_COMPONENT_ID = 197
 #: NatNet rigid-body streaming id used for the imported vehicle.
 RIGID_BODY_ID = 1
 NATNET_VERSION = (4, 1)
+#: Largest magnitude of any imported value (m/s^2, rad/s, m; quaternions are unit): far above
+#: anything physical, far below what the wire formats (float32) and unit conversions overflow on.
+MAX_ABS_VALUE = 1e6
 
 
 class ImportDataError(InputDataError):
@@ -108,6 +116,12 @@ class FlightStreams:
                     raise ImportDataError(f"{what} contains NaN or inf after conversion")
             if t.size and (t[0] < 0 or np.any(np.diff(t) <= 0)):
                 raise ImportDataError(f"{what} times must be >= 0 and strictly increasing")
+            for a in arrays:
+                if a.size and np.max(np.abs(a)) > MAX_ABS_VALUE:
+                    raise ImportDataError(
+                        f"{what} holds a value of magnitude {np.max(np.abs(a)):.3g} "
+                        f"(limit {MAX_ABS_VALUE:g}): wrong units or a corrupt file?"
+                    )
         for q, what in ((self.q_ned_frd, "attitude"), (self.q_pose, "pose")):
             if q.size and np.max(np.abs(np.linalg.norm(q, axis=1) - 1.0)) > 1e-6:
                 raise ImportDataError(f"{what} quaternions are not unit norm")
@@ -178,6 +192,26 @@ def import_metadata(created_by: str, sources: list[str], extra: Mapping[str, str
     )
 
 
+@contextmanager
+def atomic_output(out: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a temporary path beside ``out``; rename it to ``out`` only if the block succeeds.
+
+    On any exception the temporary file is removed and ``out`` is left as it was (an earlier
+    recording at that path is not replaced by a partial one).
+    """
+    target = Path(out)
+    tmp = target.with_name(f".{target.name}.partial-{os.getpid()}")
+    try:
+        yield tmp
+        os.replace(tmp, target)
+    except BaseException:
+        try:
+            tmp.unlink()
+        except FileNotFoundError:
+            pass
+        raise
+
+
 def check_source(path: str | os.PathLike[str]) -> Path:
     """Return ``path`` as a Path if it is a readable file, else raise :class:`ImportDataError`."""
     p = Path(path)
@@ -220,16 +254,38 @@ def write_flight(
     -------
     ImportReport
     """
-    from firmware_bridge.frames import ned_to_enu, quat_ned_frd_to_enu_flu, world_to_motive
-    from firmware_bridge.mavlink.codec import MavlinkCodec
-    from firmware_bridge.mavlink.messages import AttitudeSample, ImuSample, MocapPose
-    from firmware_bridge.natnet import FrameOfData, RigidBody, encode_frame_of_data
+    from firmware_bridge.errors import BridgeError
 
     if pose_transport not in ("natnet", "mavlink"):
         raise ImportDataError(
             f"pose_transport must be 'natnet' or 'mavlink', got {pose_transport!r}"
         )
     streams.validate()
+    try:
+        with atomic_output(out) as tmp:
+            return _write_flight(
+                streams, tmp, out, source, created_by, link_uri, mocap_uri, pose_transport, truth
+            )
+    except BridgeError as exc:  # a value the wire format cannot carry (checked per frame)
+        raise ImportDataError(f"cannot import {source}: {exc.message}", exc.hint) from None
+
+
+def _write_flight(
+    streams: FlightStreams,
+    tmp: Path,
+    out: str | os.PathLike[str],
+    source: str,
+    created_by: str,
+    link_uri: str,
+    mocap_uri: str,
+    pose_transport: str,
+    truth: Mapping[str, Any] | None,
+) -> ImportReport:
+    from firmware_bridge.frames import ned_to_enu, quat_ned_frd_to_enu_flu, world_to_motive
+    from firmware_bridge.mavlink.codec import MavlinkCodec
+    from firmware_bridge.mavlink.messages import AttitudeSample, ImuSample, MocapPose
+    from firmware_bridge.natnet import FrameOfData, RigidBody, encode_frame_of_data
+
     link = MavlinkCodec(AUTOPILOT_SYSTEM_ID, AUTOPILOT_COMPONENT_ID)
     mocap = MavlinkCodec(AUTOPILOT_SYSTEM_ID, MOCAP_COMPONENT_ID)
     # Merge the three streams by time; ties keep the order imu, attitude, pose (stable sort).
@@ -256,7 +312,7 @@ def write_flight(
         layout.KEY_MOTIVE_UP: "y",
     }
     meta = import_metadata(created_by, [str(source)])
-    with Recorder(out, metadata=meta) as rec:
+    with Recorder(tmp, metadata=meta) as rec:
         for k in order:
             t = int(times[k])
             i = int(index[k])

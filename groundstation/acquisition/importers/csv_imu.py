@@ -29,9 +29,11 @@ Sensors" (attribution stored in the recording's metadata).
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -59,56 +61,126 @@ ATTRIBUTION = (
 )
 
 
+#: Plausible magnitude of each column (by name prefix); rows beyond are skipped and counted.
+#: Xsens DOT: +-16 g, +-2000 deg/s; time in s since the start (< 1e9 s keeps ns in int64).
+LIMITS = {
+    "time": 1e9,
+    "Acc_": 1e4,  # m/s^2
+    "Gyr_": 1e5,  # deg/s
+    "Euler_": 1e4,  # deg
+    "North": 1e7,  # m
+    "East": 1e7,
+    "Down": 1e7,
+    "compass_heading": 1e4,  # deg
+    "pitch": 1e4,
+    "roll": 1e4,
+}
+_MAX_LINE_ERRORS_NAMED = 3
+
+
+def _limit(column: str) -> float:
+    for prefix, limit in LIMITS.items():
+        if column.startswith(prefix):
+            return limit
+    return 1e6
+
+
 def read_numeric_csv(
     path: str | os.PathLike[str], columns: tuple[str, ...], skipped: Counter
 ) -> dict[str, np.ndarray]:
     """Read the named columns of a CSV file with a header row.
 
-    Rows with the wrong field count, non-numbers or non-finite values, and rows whose ``time``
-    does not increase, are skipped and counted in ``skipped`` by reason.
+    Rows with the wrong field count, non-numbers (including bytes that are not UTF-8),
+    non-finite values or values beyond :data:`LIMITS` (``time`` must be in [0, 1e9) s), lines
+    the CSV parser rejects (NUL bytes, oversized fields), and rows whose ``time`` does not
+    increase, are skipped and counted in ``skipped`` by reason.
 
     Returns
     -------
     dict of column name -> (n,) float64
+
+    Raises
+    ------
+    ImportDataError
+        No header, missing columns, or no usable row.
     """
     p = check_source(path)
-    with open(p, newline="") as f:
-        reader = csv.reader(f)
+    try:
+        f = open(p, newline="", encoding="utf-8-sig", errors="surrogateescape")  # noqa: SIM115
+    except OSError as exc:
+        raise ImportDataError(f"cannot read {str(p)!r}: {exc.strerror or exc}") from None
+    with f:
+        return _parse_rows(csv.reader(f), p.name, str(p), columns, skipped)
+
+
+def parse_numeric_csv(
+    text: str, columns: tuple[str, ...], skipped: Counter, name: str = "<csv>"
+) -> dict[str, np.ndarray]:
+    """:func:`read_numeric_csv` on text in memory (the same rules)."""
+    return _parse_rows(csv.reader(io.StringIO(text, newline="")), name, name, columns, skipped)
+
+
+def _parse_rows(
+    reader: Iterator[list[str]],
+    name: str,
+    where: str,
+    columns: tuple[str, ...],
+    skipped: Counter,
+) -> dict[str, np.ndarray]:
+    header = None
+    while header is None:
         try:
             header = [h.strip() for h in next(reader)]
         except StopIteration:
-            raise ImportDataError(f"{str(p)!r} is empty") from None
-        missing = [c for c in columns if c not in header]
-        if missing:
-            raise ImportDataError(
-                f"{str(p)!r} lacks column(s) {missing}; header is {header}",
-                hint="expected the aggressive_flight layout (time, Euler_*, Acc_*, Gyr_*)",
-            )
-        idx = [header.index(c) for c in columns]
-        t_col = columns.index("time")
-        rows: list[list[float]] = []
-        last_t = -math.inf
-        for row in reader:
-            if not row or all(not c.strip() for c in row):
-                continue
-            if len(row) != len(header):
-                skipped[f"{p.name}: wrong field count"] += 1
-                continue
-            try:
-                values = [float(row[i]) for i in idx]
-            except ValueError:
-                skipped[f"{p.name}: not a number"] += 1
-                continue
-            if not all(math.isfinite(v) for v in values):
-                skipped[f"{p.name}: NaN/inf"] += 1
-                continue
-            if values[t_col] <= last_t:
-                skipped[f"{p.name}: time not increasing"] += 1
-                continue
-            last_t = values[t_col]
-            rows.append(values)
+            raise ImportDataError(f"{where!r} is empty") from None
+        except csv.Error as exc:
+            raise ImportDataError(f"{where!r}: the header line is not CSV ({exc})") from None
+    missing = [c for c in columns if c not in header]
+    if missing:
+        shown = [h.encode("utf-8", "backslashreplace").decode()[:40] for h in header[:20]]
+        raise ImportDataError(
+            f"{where!r} lacks column(s) {missing}; header is {shown}",
+            hint="expected the aggressive_flight layout (time, Euler_*, Acc_*, Gyr_*)",
+        )
+    idx = [header.index(c) for c in columns]
+    limits = [_limit(c) for c in columns]
+    t_col = columns.index("time")
+    rows: list[list[float]] = []
+    last_t = -math.inf
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            break
+        except csv.Error as exc:  # NUL byte, field beyond csv.field_size_limit()
+            reason = f"{name}: malformed CSV line"
+            if skipped[reason] < _MAX_LINE_ERRORS_NAMED:
+                skipped[f"{name}: line {getattr(reader, 'line_num', '?')}: {exc}"] += 1
+            skipped[reason] += 1
+            continue
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) != len(header):
+            skipped[f"{name}: wrong field count"] += 1
+            continue
+        try:
+            values = [float(row[i]) for i in idx]
+        except (ValueError, UnicodeEncodeError):
+            skipped[f"{name}: not a number"] += 1
+            continue
+        if not all(math.isfinite(v) for v in values):
+            skipped[f"{name}: NaN/inf"] += 1
+            continue
+        if values[t_col] < 0 or any(abs(v) >= lim for v, lim in zip(values, limits, strict=True)):
+            skipped[f"{name}: value out of range"] += 1
+            continue
+        if values[t_col] <= last_t:
+            skipped[f"{name}: time not increasing"] += 1
+            continue
+        last_t = values[t_col]
+        rows.append(values)
     if not rows:
-        raise ImportDataError(f"{str(p)!r} has no usable rows ({dict(skipped)})")
+        raise ImportDataError(f"{where!r} has no usable rows ({dict(skipped)})")
     data = np.asarray(rows, dtype=np.float64)
     return {c: data[:, k] for k, c in enumerate(columns)}
 

@@ -16,6 +16,7 @@ the next position that holds a plausible timestamp followed by a valid frame.
 from __future__ import annotations
 
 import os
+import re
 import struct
 from collections import Counter
 from collections.abc import Iterator
@@ -25,6 +26,7 @@ from groundstation.acquisition import layout
 from groundstation.acquisition.importers import (
     ImportDataError,
     ImportReport,
+    atomic_output,
     check_source,
     import_metadata,
 )
@@ -32,7 +34,10 @@ from groundstation.acquisition.recorder import Recorder
 
 _TS = struct.Struct(">Q")
 _STX_V2, _STX_V1 = 0xFD, 0xFE
+_STX = re.compile(b"[\xfd\xfe]")
 _SIGNATURE_LEN = 13
+#: Log times are int64 ns downstream (bus headers): later timestamps are dropped and counted.
+MAX_TIME_NS = 2**63 - 1
 
 
 def frame_length(buf: bytes | bytearray, pos: int) -> int | None:
@@ -118,7 +123,12 @@ def read_tlog(data: bytes, skipped: Counter) -> Iterator[TlogRecord]:
         if not resyncing:
             skipped["damaged record (bad frame), resynced"] += 1
             resyncing = True
-        pos += 1
+        # next position whose frame would start with a start byte (the byte-by-byte scan of
+        # the resync, without visiting the positions that cannot hold a record)
+        m = _STX.search(data, pos + 1 + _TS.size)
+        if m is None:
+            return
+        pos = m.start() - _TS.size
 
 
 def import_tlog(
@@ -129,23 +139,32 @@ def import_tlog(
 ) -> ImportReport:
     """Import a ``.tlog`` into a recording at ``out`` (frames copied unchanged)."""
     p = check_source(src)
-    data = p.read_bytes()
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise ImportDataError(f"cannot read {str(p)!r}: {exc.strerror or exc}") from None
     skipped: Counter = Counter()
     counts: Counter = Counter()
     last_ns = -1
-    with Recorder(out, metadata=import_metadata(created_by, [str(src)])) as rec:
+    with (
+        atomic_output(out) as tmp,
+        Recorder(tmp, metadata=import_metadata(created_by, [str(src)])) as rec,
+    ):
         for r in read_tlog(data, skipped):
             t_ns = r.time_us * 1000
+            if t_ns > MAX_TIME_NS:
+                skipped["timestamp beyond 2**63 ns (dropped)"] += 1
+                continue
             if t_ns < last_ns:
                 skipped["timestamp went backwards (kept, reader sorts by time)"] += 1
             last_ns = max(last_ns, t_ns)
             rec.write(r.frame, layout.RAW_MAVLINK_TOPIC, t_ns, t_ns, source=f"import:tlog:{p.name}")
             counts[message_name(message_id(r.frame))] += 1
-    if not counts:
-        raise ImportDataError(
-            f"{str(p)!r} holds no valid MAVLink frames ({dict(skipped)})",
-            hint="a tlog is 8-byte big-endian us timestamps each followed by a MAVLink frame",
-        )
+        if not counts:
+            raise ImportDataError(
+                f"{str(p)!r} holds no valid MAVLink frames ({dict(skipped)})",
+                hint="a tlog is 8-byte big-endian us timestamps each followed by a MAVLink frame",
+            )
     return ImportReport(
         source=str(src),
         out=str(out),

@@ -13,18 +13,25 @@ Topics used (instance 0), all in PX4's conventions, which are MAVLink's:
 No unit or frame change is needed; times are us -> ns. When the log's clock does not fit
 ATTITUDE_QUATERNION's 32-bit ``time_boot_ms`` (SITL logs use Unix time), all times are
 rebased to the log's start timestamp (noted in the report).
+
+pyulog runs in a child process under a time limit (:func:`read_ulog`): on a corrupted file it
+can loop for ever (a 36 KB damaged log kept ``import ulog`` busy for more than 60 s, inside
+``ULog._read_file_definitions``). A stuck or crashed parse becomes an :class:`ImportDataError`
+naming the file and the limit; nothing is written.
 """
 
 from __future__ import annotations
 
 import os
 from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from groundstation.acquisition.importers import (
+    MAX_ABS_VALUE,
     FlightStreams,
     ImportDataError,
     ImportReport,
@@ -36,22 +43,129 @@ from groundstation.acquisition.importers import (
 
 TOPICS = ("sensor_combined", "vehicle_attitude", "vehicle_local_position")
 _MAX_BOOT_MS = 2**32 - 1
+_MAX_TIME_US = (2**63 - 1) // 1000  # times become int64 ns
+#: Time limit of the pyulog parse: this base plus :data:`TIME_LIMIT_PER_MB_S` per MB of file
+#: (pyulog reads the 4 MB ``sample.ulg`` in ~0.3 s here, so this is > 30x headroom).
+TIME_LIMIT_BASE_S = 20.0
+TIME_LIMIT_PER_MB_S = 2.0
 
 
-def _dataset(ulog: Any, name: str) -> dict[str, np.ndarray] | None:
-    for d in ulog.data_list:
-        if d.name == name and d.multi_id == 0:
-            return d.data
-    return None
+@dataclass(frozen=True)
+class ParsedULog:
+    """What the importer needs from a ULog: the start timestamp (us) and the instance-0 data
+    of :data:`TOPICS` (field name -> array), as parsed by pyulog."""
+
+    start_timestamp: int
+    datasets: dict[str, dict[str, np.ndarray]]
+
+
+def default_time_limit_s(size_bytes: int) -> float:
+    """The pyulog time limit for a file of ``size_bytes``, s."""
+    return TIME_LIMIT_BASE_S + TIME_LIMIT_PER_MB_S * size_bytes / 1e6
+
+
+def parse_ulog(data: bytes | str) -> ParsedULog:
+    """Parse a ULog (bytes in memory or a path) with pyulog, in this process, no time limit.
+
+    Raises
+    ------
+    ImportDataError
+        pyulog rejected the file (any exception it raises).
+    """
+    import contextlib
+    import io
+
+    from pyulog import ULog
+
+    source = io.BytesIO(data) if isinstance(data, bytes | bytearray) else data
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):  # pyulog prints its warnings
+            ulog = ULog(source, list(TOPICS))
+        sets = {d.name: dict(d.data) for d in ulog.data_list if d.multi_id == 0}
+        return ParsedULog(int(ulog.start_timestamp), sets)
+    except Exception as exc:  # noqa: BLE001 - pyulog raises assorted errors on bad files
+        raise ImportDataError(f"pyulog cannot read it: {type(exc).__name__}: {exc}") from None
+
+
+def _child(path: str, conn: Any) -> None:
+    try:
+        conn.send(("ok", parse_ulog(path)))
+    except ImportDataError as exc:
+        conn.send(("error", exc.message))
+    except BaseException as exc:  # noqa: BLE001 - MemoryError and the like: report, exit
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+    finally:
+        conn.close()
+
+
+def read_ulog(path: str | os.PathLike[str], time_limit_s: float | None = None) -> ParsedULog:
+    """Parse ``path`` with pyulog in a child process that is killed after ``time_limit_s``.
+
+    Parameters
+    ----------
+    path : path
+        ULog file.
+    time_limit_s : float, optional
+        Default :func:`default_time_limit_s` of the file size.
+
+    Raises
+    ------
+    ImportDataError
+        pyulog rejected the file, crashed, or did not finish in time (the message names the file,
+        the limit and the library).
+    """
+    import multiprocessing
+
+    p = Path(path)
+    limit = default_time_limit_s(p.stat().st_size) if time_limit_s is None else time_limit_s
+    if not limit > 0:
+        raise ImportDataError(f"ULog time limit {limit!r} s must be > 0")
+    methods = multiprocessing.get_all_start_methods()
+    ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+    recv, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child, args=(str(p), send), daemon=True, name="pyulog")
+    proc.start()
+    send.close()
+    try:
+        if not recv.poll(limit):
+            raise ImportDataError(
+                f"cannot read ULog {str(p)!r}: pyulog did not finish within {limit:.0f} s "
+                "(stopped); the file is probably corrupt",
+                hint="check it with 'ulog_info FILE'; if it is only very large, raise --time-limit",
+            )
+        try:
+            kind, value = recv.recv()
+        except (EOFError, OSError):
+            proc.join(5)
+            raise ImportDataError(
+                f"cannot read ULog {str(p)!r}: pyulog crashed (exit code {proc.exitcode})"
+            ) from None
+    finally:
+        recv.close()
+        if proc.is_alive():
+            proc.kill()
+        proc.join(5)
+    if kind != "ok":
+        raise ImportDataError(f"cannot read ULog {str(p)!r}: {value}")
+    return value
+
+
+def _dataset(ulog: ParsedULog, name: str) -> dict[str, np.ndarray] | None:
+    return ulog.datasets.get(name)
 
 
 def _clean(
     t_us: np.ndarray, arrays: list[np.ndarray], what: str, skipped: Counter
 ) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Drop rows with non-finite values or non-increasing time, counting them."""
+    """Drop rows with non-finite or out-of-range values or non-increasing time, counting them."""
     finite = np.all(np.stack([np.all(np.isfinite(a), axis=1) for a in arrays]), axis=0)
     skipped[f"{what}: NaN/inf"] += int((~finite).sum())
     t_us, arrays = t_us[finite], [a[finite] for a in arrays]
+    ok = (t_us >= 0) & (t_us <= _MAX_TIME_US)
+    for a in arrays:
+        ok &= np.all(np.abs(a) <= MAX_ABS_VALUE, axis=1)
+    skipped[f"{what}: value out of range"] += int((~ok).sum())
+    t_us, arrays = t_us[ok], [a[ok] for a in arrays]
     keep = np.ones(t_us.size, bool)
     last = -1
     for i, t in enumerate(t_us):  # strictly increasing (duplicates and steps back dropped)
@@ -63,6 +177,16 @@ def _clean(
     return t_us[keep], [a[keep] for a in arrays]
 
 
+def _times(data: dict[str, np.ndarray], topic: str) -> np.ndarray:
+    """``timestamp`` (us) as int64; values beyond int64 become -1 (dropped by :func:`_clean`)."""
+    if "timestamp" not in data:
+        raise ImportDataError(f"ULog topic {topic!r} lacks a timestamp field")
+    t = np.asarray(data["timestamp"])
+    if t.dtype.kind == "u":
+        return np.where(t > _MAX_TIME_US, -1, t.astype(np.int64, copy=False))
+    return t.astype(np.int64)
+
+
 def _cols(data: dict[str, np.ndarray], names: list[str], topic: str) -> np.ndarray:
     missing = [n for n in names if n not in data]
     if missing:
@@ -70,15 +194,16 @@ def _cols(data: dict[str, np.ndarray], names: list[str], topic: str) -> np.ndarr
     return np.stack([np.asarray(data[n], dtype=np.float64) for n in names], axis=1)
 
 
-def convert_ulog(path: str | os.PathLike[str]) -> FlightStreams:
-    """Read a ULog file and convert it to :class:`FlightStreams`."""
-    from pyulog import ULog
-
-    p = check_source(path)
-    try:
-        ulog = ULog(str(p), list(TOPICS))
-    except Exception as exc:  # noqa: BLE001 - pyulog raises assorted errors on bad files
-        raise ImportDataError(f"cannot read ULog {str(p)!r}: {exc}") from None
+def convert_ulog(
+    path: str | os.PathLike[str] | ParsedULog, time_limit_s: float | None = None
+) -> FlightStreams:
+    """Read a ULog file (under a time limit, see :func:`read_ulog`) and convert it to
+    :class:`FlightStreams`; ``path`` may also be an already parsed :class:`ParsedULog`."""
+    if isinstance(path, ParsedULog):
+        p, ulog = Path("<memory>"), path
+    else:
+        p = check_source(path)
+        ulog = read_ulog(p, time_limit_s)
     skipped: Counter = Counter()
     notes: list[str] = []
     sc = _dataset(ulog, "sensor_combined")
@@ -88,12 +213,12 @@ def convert_ulog(path: str | os.PathLike[str]) -> FlightStreams:
             f"ULog {str(p)!r} lacks sensor_combined or vehicle_attitude",
             hint="log these topics (PX4 SDLOG_PROFILE default includes them)",
         )
-    imu_t = np.asarray(sc["timestamp"], dtype=np.int64)
+    imu_t = _times(sc, "sensor_combined")
     acc = _cols(sc, [f"accelerometer_m_s2[{i}]" for i in range(3)], "sensor_combined")
     gyr = _cols(sc, [f"gyro_rad[{i}]" for i in range(3)], "sensor_combined")
     imu_t, (acc, gyr) = _clean(imu_t, [acc, gyr], "sensor_combined", skipped)
 
-    att_t = np.asarray(att["timestamp"], dtype=np.int64)
+    att_t = _times(att, "vehicle_attitude")
     q = _cols(att, [f"q[{i}]" for i in range(4)], "vehicle_attitude")
     if all(k in att for k in ("rollspeed", "pitchspeed", "yawspeed")):
         rates = _cols(att, ["rollspeed", "pitchspeed", "yawspeed"], "vehicle_attitude")
@@ -116,7 +241,7 @@ def convert_ulog(path: str | os.PathLike[str]) -> FlightStreams:
     if lp is None:
         notes.append("no vehicle_local_position: no positions")
     else:
-        pose_t = np.asarray(lp["timestamp"], dtype=np.int64)
+        pose_t = _times(lp, "vehicle_local_position")
         pos = _cols(lp, ["x", "y", "z"], "vehicle_local_position")
         valid = np.ones(pose_t.size, bool)
         for flag in ("xy_valid", "z_valid"):
@@ -160,9 +285,10 @@ def import_ulog(
     *,
     pose_transport: str = "natnet",
     created_by: str = "groundstation import ulog",
+    time_limit_s: float | None = None,
 ) -> ImportReport:
-    """Import a PX4 ULog file into a recording at ``out``."""
-    streams = convert_ulog(src)
+    """Import a PX4 ULog file into a recording at ``out`` (pyulog under ``time_limit_s``)."""
+    streams = convert_ulog(src, time_limit_s)
     name = Path(src).name
     return write_flight(
         streams,

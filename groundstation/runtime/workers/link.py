@@ -31,7 +31,12 @@
   file of the session directory) and the first one it publishes (``restart_gap_s`` in its
   status, and a ``log`` warning);
 - reports unplug/replug (link events) on ``log`` and ``status``; bad bytes are counted by the
-  decoder, never raised. SIGINT/SIGTERM stop it cleanly (exit 0).
+  decoder, never raised. SIGINT/SIGTERM stop it cleanly (exit 0);
+- UDP links lock to the vehicle first heard or to ``acquisition.link_allow_peers``
+  (:class:`firmware_bridge.link.peer.PeerLock`); with ``acquisition.signing_key_file`` every
+  frame sent is MAVLink 2 signed. Status ``topics["security"]``: ``peer``, ``system_id``,
+  ``rejected_peers``, ``rejected_from``, ``last_rejected`` (UDP), ``signing`` and
+  ``rejected_signature`` (received frames with a bad signature).
 
 Two threads: the main loop reads the link (20 ms timeout) and publishes; the command thread
 forwards ``pilot.command``. Encoding and writing share one lock (the codec's sequence counter).
@@ -52,7 +57,7 @@ import numpy as np
 import zmq
 
 from firmware_bridge.errors import BridgeError, LinkError
-from firmware_bridge.link import Link, open_link
+from firmware_bridge.link import Link, LinkOptions, open_link
 from firmware_bridge.link.base import parse_uri
 from firmware_bridge.mavlink import MavlinkCodec
 from firmware_bridge.mavlink.messages import (
@@ -63,6 +68,7 @@ from firmware_bridge.mavlink.messages import (
     SetMessageInterval,
     Timesync,
 )
+from firmware_bridge.mavlink.signing import load_signing_key
 from groundstation.acquisition.decoders import MavlinkStreamDecoder
 from groundstation.bus.pubsub import Subscriber
 from groundstation.config import Config
@@ -93,6 +99,7 @@ _REPORTED_EVENTS = {
     "reconnected": "info",
     "read_error": "warning",
     "write_error": "warning",
+    "peer_rejected": "warning",
 }
 
 
@@ -159,7 +166,7 @@ class LinkProcess(Worker):
         self.decoder = MavlinkStreamDecoder(
             s.timesync_window, int(s.timesync_max_rtt_ms * 1e6), int(s.mocap_latency_ms * 1e6)
         )
-        self.tx = MavlinkCodec(s.system_id, s.component_id)
+        self.tx: MavlinkCodec | None = None  # made in run(): loading the key may fail
         self.link: Link | None = None
         self.device_error: str | None = None
         self.manual_sent = 0
@@ -184,12 +191,12 @@ class LinkProcess(Worker):
     def _send(self, record: Record) -> None:
         """Encode and write one record (any thread); a bad value is counted and reported by the
         main loop (the publisher belongs to it), never raised."""
-        link = self.link
-        if link is None:
+        link, tx = self.link, self.tx
+        if link is None or tx is None:
             return
         try:
             with self._tx_lock:
-                link.write(self.tx.encode(record))
+                link.write(tx.encode(record))
         except BridgeError as exc:  # a value out of range: report, keep going
             self.commands_rejected += 1
             self._warnings.append(f"not sent: {exc.message}")
@@ -263,7 +270,11 @@ class LinkProcess(Worker):
             if d.topic == "samples.imu":
                 self._imu(int(d.source_ns))
         for rec in records:
-            if isinstance(rec, Timesync) and rec.tc1 == 0 and rec.system_id != self.tx.system_id:
+            if (
+                isinstance(rec, Timesync)
+                and rec.tc1 == 0
+                and rec.system_id != self.settings.system_id
+            ):
                 self._send(Timesync(time.monotonic_ns(), rec.ts1))  # the vehicle syncs to us
             elif isinstance(rec, CommandAck):
                 self.acks.append((rec.command, rec.result))
@@ -315,6 +326,12 @@ class LinkProcess(Worker):
 
     # -- worker hooks --------------------------------------------------------------------------
     def setup(self) -> int | None:
+        try:
+            self._make_codec()
+        except BridgeError as exc:
+            self.log("error", exc.message, exc.hint)
+            self.device_error = exc.message
+            return 3
         self._load_state()
         self._try_open(request=False)  # first: the port buffers what arrives meanwhile
         # a restart waits briefly (its subscribers reconnect within ~0.1 s): the port's
@@ -334,7 +351,8 @@ class LinkProcess(Worker):
         self._reopen_at = time.monotonic() + _REOPEN_S
         try:
             check_sitl_link(self.uri)
-            link = open_link(self.uri)
+            s = self.settings
+            link = open_link(self.uri, LinkOptions(s.link_allow_peers, s.vehicle_system_id))
         except BridgeError as exc:
             if self.device_error != exc.message:
                 self.log("error", f"cannot open {self.uri}: {exc.message}", exc.hint)
@@ -385,6 +403,7 @@ class LinkProcess(Worker):
 
     def status_topics(self, now_ns: int) -> dict:
         topics = self.rates.snapshot(now_ns)
+        topics["security"] = self.security_counters()
         topics["pilot.command"] = {
             "received": self.commands_received,
             "manual_control_sent": self.manual_sent,
@@ -408,6 +427,22 @@ class LinkProcess(Worker):
         if self.device_error is not None:
             return f"{self.uri}: NO DEVICE: {self.device_error}"
         return f"{self.uri}: {self.decoder.health.summary()}"
+
+    def security_counters(self) -> dict:
+        """Peer lock (UDP links) and signing counters for the status payload."""
+        lock = getattr(self.link, "peer_lock", None)
+        out: dict = lock.counters() if lock is not None else {}
+        out["signing"] = bool(self.settings.signing_key_file)
+        out["rejected_signature"] = int(self.decoder.codec.stats.rejected_signature)
+        return out
+
+    def _make_codec(self) -> None:
+        """The uplink codec, signed when a key is configured (raises BridgeError for a bad key)."""
+        s = self.settings
+        key = load_signing_key(s.signing_key_file) if s.signing_key_file else None
+        self.tx = MavlinkCodec(
+            s.system_id, s.component_id, signing_key=key, sign_outgoing=key is not None
+        )
 
     def teardown(self) -> None:
         self._cmd_stop.set()

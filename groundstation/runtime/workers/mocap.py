@@ -18,6 +18,13 @@ also says how long no datagram has arrived (``silent_s``: a wrong host or port o
 then stays silent), and after a restart how much mocap time it missed (``restart_gap_s``,
 mocap clock, from ``mocap.state`` in the session directory). SIGINT/SIGTERM stop it cleanly
 (exit 0).
+
+Datagrams not from the NatNet server (and server info not from its command port) are dropped by
+the link before they are published or recorded (:class:`firmware_bridge.natnet.peers.
+NatNetPeerPolicy`); a server-info version change is logged as a warning. Status
+``topics["decoder"]``: ``bad``, ``nonfinite``, ``ignored``, ``out_of_range``,
+``refused_versions``, ``version_changes``, ``version``; ``topics["security"]``: ``server``,
+``rejected_peers``, ``rejected_server_info``, ``rejected_from``, ``last_rejected``.
 """
 
 from __future__ import annotations
@@ -90,6 +97,8 @@ class MocapProcess(Worker):
         self._reported_bad = 0
         self._reopen_at = 0.0
         self.status_period_ns = int(s.health_period_s * 1e9)
+        self._reported_events = 0
+        self._reported_rejections = 0
 
     def on_datagram(self, data: bytes, recv_ns: int, sender: str) -> None:
         """Publish one datagram received at ``recv_ns`` and its poses."""
@@ -174,12 +183,37 @@ class MocapProcess(Worker):
             n_new = c.bad - self._reported_bad
             self.log("warning", f"{n_new} bad NatNet datagram(s); last: {self.decoder.last_error}")
             self._reported_bad = c.bad
+        for text in self.decoder.events[self._reported_events :]:
+            self.log("warning", text)
+        self._reported_events = len(self.decoder.events)
+        policy = getattr(self.link, "policy", None)
+        security = policy.counters() if policy is not None else {}
+        rejected = int(security.get("rejected_peers", 0)) + int(
+            security.get("rejected_server_info", 0)
+        )
+        if rejected > self._reported_rejections:
+            text = (
+                f"{rejected - self._reported_rejections} NatNet datagram(s) rejected; "
+                f"last: {security.get('last_rejected')}"
+            )
+            self.log("warning", text)
+            self._reported_rejections = rejected
         super().publish_status(now_ns)
 
     def status_topics(self, now_ns: int) -> dict:
         topics = self.rates.snapshot(now_ns)
         c = self.decoder.counters
-        topics["decoder"] = {"bad": c.bad, "nonfinite": c.nonfinite, "ignored": c.ignored}
+        topics["decoder"] = {
+            "bad": c.bad,
+            "nonfinite": c.nonfinite,
+            "ignored": c.ignored,
+            "out_of_range": c.out_of_range,
+            "refused_versions": c.refused_versions,
+            "version_changes": c.version_changes,
+            "version": ".".join(str(v) for v in self.decoder.version),
+        }
+        policy = getattr(self.link, "policy", None)
+        topics["security"] = policy.counters() if policy is not None else {}
         since = self.last_rx_ns if self.last_rx_ns is not None else self.opened_ns
         topics["mocap"] = {
             "uri": self.uri,

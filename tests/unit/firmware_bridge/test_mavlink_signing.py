@@ -108,3 +108,20 @@ def test_key_file_raw_hex_and_bad(tmp_path):
 def test_signing_timestamp_epoch():
     assert signing_timestamp(1420070400.0) == 0
     assert signing_timestamp(1420070401.5) == 150_000
+
+
+def test_a_forged_signature_cannot_lock_out_the_genuine_station():
+    """pymavlink stores a stream's signing timestamp before checking the signature; a forged
+    frame with timestamp 2**48-1 on the station's stream would turn every genuine frame after
+    it into a "replay" (a denial of service on the pilot's commands)."""
+    veh = vehicle()
+    forger = MavlinkCodec(
+        255, 190, signing_key=OTHER_KEY, sign_outgoing=True, signing_timestamp=2**48 - 100
+    )
+    assert veh.decode(forger.encode(COMMANDS[0]), 1) == []
+    gcs = station()  # genuine key, timestamps from 10**9
+    out = veh.decode(b"".join(gcs.encode(c) for c in COMMANDS), 2)
+    assert [type(r) for r in out] == [type(c) for c in COMMANDS]
+    assert veh.stats.rejected_signature == 1
+    assert veh.decode(gcs.encode(COMMANDS[0])[:0] + station().encode(COMMANDS[0]), 3) == []
+    assert veh.stats.rejected_signature == 2  # a genuine replay is still refused
