@@ -23,6 +23,7 @@ import argparse
 import sys
 import time
 from collections.abc import Sequence
+from typing import Any
 
 import zmq
 
@@ -31,6 +32,7 @@ from groundstation.acquisition.recorder import Recorder, RecordingError
 from groundstation.acquisition.settings import AcquisitionSettings
 from groundstation.bus.envelope import Envelope, pack_frames
 from groundstation.bus.pubsub import Publisher, Subscriber
+from groundstation.openformats.export import foxglove_hook
 from groundstation.runtime.session import (
     RateCounter,
     Session,
@@ -68,6 +70,7 @@ class RecorderProcess:
         sources: Sequence[str] = (),
         created_by: str = "groundstation record",
         context: zmq.Context | None = None,
+        foxglove: Any = None,
     ) -> None:
         self.name, self.out = name, out
         self.ctx = context or zmq.Context()
@@ -89,13 +92,18 @@ class RecorderProcess:
             created_by=created_by,
             config="[acquisition]\n" + to_toml(settings),
             sources=sources,
-            extra={"session": session.session_id},
+            extra={
+                "session": session.session_id,
+                layout.KEY_UTC_OFFSET: str(time.time_ns() - time.monotonic_ns()),
+            },
         )
         try:
             self.recorder = Recorder(out, metadata=meta)
             self.state = "recording"
         except RecordingError as exc:
             self._failed(exc)
+        # Foxglove channels beside ours (issue 15): groundstation.openformats.export
+        self.foxglove = foxglove(self.recorder) if self.recorder and foxglove else None
 
     def _failed(self, exc: RecordingError) -> None:
         self.state = "failed"
@@ -126,6 +134,8 @@ class RecorderProcess:
                 rec.write(env, env.topic, env.header.recv_ns, channel_metadata=extra or None)
             else:
                 rec.write(pack_frames(frames), env.topic, env.header.recv_ns, env.header.source_ns)
+            if self.foxglove is not None:
+                self.foxglove.add(env, env.header.recv_ns)
         except RecordingError as exc:
             self.dropped += 1
             self._failed(exc)
@@ -196,6 +206,8 @@ class RecorderProcess:
     def close(self) -> None:
         if self.recorder is not None:
             try:
+                if self.foxglove is not None:
+                    self.foxglove.finish()
                 self.recorder.close(fsync=True)
             except RecordingError as exc:
                 self._failed(exc)
@@ -231,6 +243,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         name=args.name,
         sources=args.source,
         created_by=args.created_by,
+        foxglove=foxglove_hook(args.config, args.set),
     )
     return proc.run(stop, args.max_s)
 
