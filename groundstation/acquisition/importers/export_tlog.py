@@ -5,12 +5,13 @@ Every valid frame on the ``raw.mavlink`` channels is written unchanged, in log-t
 monotonic clock, so they are dated by the first wall-clock reference found (the report says
 which): the recording's ``utc_offset_ns`` metadata (live recorders write it), else the vehicle's
 own clock (the first MAVLink SYSTEM_TIME with a non-zero ``time_unix_usec``), else the file's
-modification time taken as the end of the recording; ``utc_start`` overrides all three.
-Raw chunks may hold several frames or split a frame across reads: a per-channel splitter reassembles them (the same length rules and
-CRC check as :mod:`.tlog`); damaged bytes are skipped and counted. With ``natnet_as_mocap``
-(default), each NatNet frame's rigid body becomes an ATT_POS_MOCAP frame (Motive -> world
-(ENU) -> NED, quaternion FLU/ENU -> FRD/NED, via ``firmware_bridge.frames``) from system 1,
-component 197, so the mocap track appears in the tlog too.
+modification time taken as the end of the recording; ``utc_start`` overrides all three. Raw
+chunks may hold several frames or split a frame across reads: a per-channel splitter reassembles
+them (the same length rules and CRC check as :mod:`.tlog`); damaged bytes are skipped and
+counted. With ``natnet_as_mocap`` (default), each NatNet frame's rigid body becomes an
+ATT_POS_MOCAP frame (Motive -> world (ENU) -> NED, quaternion FLU/ENU -> FRD/NED, via
+``firmware_bridge.frames``) from system 1, component 197, so the mocap track appears in the tlog
+too.
 """
 
 from __future__ import annotations
@@ -111,8 +112,12 @@ def system_time_unix_us(frame: bytes) -> int | None:
 
 
 def _wall_clock(
-    meta: dict | None, first_system_time: tuple[int, int] | None, src: Path, end_ns: int | None,
-    utc_start: float | None, start_ns: int | None,
+    meta: dict | None,
+    first_system_time: tuple[int, int] | None,
+    src: Path,
+    end_ns: int | None,
+    utc_start: float | None,
+    start_ns: int | None,
 ) -> tuple[int, str]:
     """(UTC ns - log ns, which reference) for :func:`export_tlog` (module docstring order)."""
     if utc_start is not None:
