@@ -130,7 +130,8 @@ def check_groundstation_recording(rec: Recording, need_raw: bool = False) -> Non
         )
 
 
-def _copy(dst: Recorder, msg) -> None:
+def copy_message(dst: Recorder, msg) -> None:
+    """Copy one recorded message of the station's layout (same topic, times, source, metadata)."""
     meta = dict(msg.channel.metadata)
     source = meta.pop(layout.KEY_SOURCE, None)
     meta.pop(layout.KEY_LAYOUT, None)
@@ -192,7 +193,7 @@ def export_foxglove(
                 if is_foxglove_channel(msg.topic, enc) or enc not in layout.KNOWN_ENCODINGS:
                     skipped += 1
                     continue
-                _copy(out, msg)
+                copy_message(out, msg)
                 copied += 1
                 if enc == layout.ENVELOPE_ENCODING:
                     try:

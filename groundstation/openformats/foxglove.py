@@ -108,6 +108,8 @@ class FoxgloveTranslator:
     alignment : AlignmentSettings
         Attitude pairing of the signal.
     settings : TranslatorSettings
+    keep_signal : bool
+        Also keep every ``(t_ns, filtered |a| in G)`` in :attr:`signal_series` (replay reports).
     """
 
     def __init__(
@@ -115,9 +117,12 @@ class FoxgloveTranslator:
         contact: ContactSettings | None = None,
         alignment: AlignmentSettings | None = None,
         settings: TranslatorSettings | None = None,
+        *,
+        keep_signal: bool = False,
     ) -> None:
         self.settings = s = settings or TranslatorSettings()
         self.signal = DetectorSignal(contact, alignment)
+        self.signal_series: list[tuple[int, float]] | None = [] if keep_signal else None
         self.contacts = ContactBook()
         self.trajectory = Trajectory(s.trajectory_spacing_m, s.trajectory_max_points)
         self._body_id: int | None = None
@@ -218,6 +223,8 @@ class FoxgloveTranslator:
 
     def _signal(self, values: list[tuple[int, float]], log_t: int) -> list[FoxgloveMessage]:
         thr, rel = self.signal.threshold_g, self.signal.release_g
+        if self.signal_series is not None:
+            self.signal_series += values
         # A sample is released by a later message: it goes on the log axis at its own data time,
         # so the signal lines up with the events and the IMU channels.
         return [self._vector3("/detector/signal", (g, thr, rel), t, t) for t, g in values]

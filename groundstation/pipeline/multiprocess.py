@@ -49,6 +49,7 @@ def pipeline_workers(
     speed: float = math.inf,
     config_path: str | None = None,
     overrides: Sequence[str] = (),
+    window: str = "",
 ) -> list[WorkerSpec]:
     """Replay, detector and mapper workers of one replay session (command lines documented in
     the module docstring)."""
@@ -59,7 +60,7 @@ def pipeline_workers(
         common += ["--set", item]
     speed_txt = "max" if math.isinf(speed) else repr(float(speed))
     replay = source_worker(
-        f"replay://{log_path}?speed={speed_txt}",
+        f"replay://{log_path}?speed={speed_txt}{window}",
         session,
         REPLAY_PUBLISHER,
         ("--wait-subscribers", "1", *common),
@@ -109,6 +110,8 @@ def run_multiprocess(
     timeout_s: float = 600.0,
     progress: Callable[[str], None] | None = None,
     session_root: str = "/tmp",
+    start: float | None = None,
+    end: float | None = None,
 ) -> PipelineResult:
     """Run the pipeline as processes on ``log_path`` and collect what they publish.
 
@@ -122,7 +125,8 @@ def run_multiprocess(
     session = Session(new_session_id(), (REPLAY_PUBLISHER, "detector", "mapper"), session_root)
     session.ensure_directory()
     sub = Subscriber(session.subscribe_endpoints(), COLLECT)
-    sup = Supervisor(pipeline_workers(log_path, session, speed, config_path, overrides))
+    window = "".join(f"&{k}={v!r}" for k, v in (("start", start), ("end", end)) if v is not None)
+    sup = Supervisor(pipeline_workers(log_path, session, speed, config_path, overrides, window))
     events, observations, fits = [], [], []
     last_mesh: tuple[int, SurfaceMesh] | None = None
     detector_summary: dict = {}

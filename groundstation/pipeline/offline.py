@@ -100,6 +100,9 @@ def run_offline(
     *,
     progress: Progress | None = None,
     keep_meshes: int = 3,
+    start: float | None = None,
+    end: float | None = None,
+    tap: Callable[[Envelope], None] | None = None,
 ) -> PipelineResult:
     """Run the whole pipeline in process on ``log_path``.
 
@@ -113,6 +116,11 @@ def run_offline(
         Called about every 5 s of log time with (log s done, log s total, refits, contacts).
     keep_meshes : int
         Keep the meshes of this many last fits (for snapshots).
+    start, end : float, optional
+        Log window, seconds from the log start (``end`` exclusive): ``replay --start/--end``.
+    tap : callable, optional
+        Called with every decoded sample envelope before the detector sees it (replay outputs
+        translate them to Foxglove channels without decoding the log twice).
     """
     cfg = config or load_config()
     t_wall = time.perf_counter()
@@ -135,9 +143,11 @@ def run_offline(
                 _append_fit(fits, mapper.refit(), keep_meshes)
 
     next_report = 0
-    for env in iter_replay(log_path, settings=cfg.acquisition):
+    for env in iter_replay(log_path, start, end, settings=cfg.acquisition):
         if env.topic not in INPUT_TOPICS:
             continue
+        if tap is not None:
+            tap(env)
         handle(stage.push(env))
         if progress is not None and env.header.recv_ns >= next_report:
             progress((env.header.recv_ns - start_ns) / 1e9, duration, len(fits), len(events))
