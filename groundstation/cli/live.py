@@ -65,6 +65,16 @@ def add_live_arguments(parser: argparse.ArgumentParser) -> None:
     view.add_argument("--headless", action="store_true", help="viewer writes PNG/PLY to --out")
     parser.add_argument("--out", default="live_view", help="--headless output folder")
     parser.add_argument(
+        "--viewer",
+        choices=("open3d", "rerun"),
+        default="open3d",
+        help="open3d: window or --headless files (default); rerun: Rerun's web viewer, served "
+        "on --web-bind (127.0.0.1 by default) at the address printed",
+    )
+    from groundstation.cli.replay import add_viewer_arguments
+
+    add_viewer_arguments(parser)
+    parser.add_argument(
         "--no-mapping", action="store_true", help="do not start the detector and mapper"
     )
     parser.add_argument(
@@ -156,6 +166,10 @@ def plan(args: argparse.Namespace, session_id: str) -> tuple[Session, list[Worke
         )
     if not args.no_viewer:
         view = ["--headless", "--out", str(args.out)] if args.headless else []
+        if args.viewer == "rerun":
+            view = ["--viewer", "rerun", "--web-bind", args.web_bind, "--web-port",
+                    str(args.web_port), "--grpc-port", str(args.grpc_port), *cfg]  # fmt: skip
+            view += ["--rrd", str(args.rrd)] if args.rrd else []
         specs.append(
             WorkerSpec(
                 "viewer",

@@ -121,6 +121,16 @@ class RerunSettings:
             raise ConfigError(f"pose_rate_hz {self.pose_rate_hz} must be > 0")
 
 
+def _die_with_parent() -> None:
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
 def _free_port(host: str) -> int:
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
         s.bind((host, 0))
@@ -166,9 +176,12 @@ class RerunServer:
             s.server_memory_limit,
         ]  # fmt: skip
         env = dict(os.environ, RERUN_ANALYTICS="0", CI=os.environ.get("CI", "1"))
+        # Same process group as this process (a supervisor that stops a worker's group stops
+        # its server too), and SIGTERM when this process dies (Linux), so no orphan keeps the
+        # ports.
         self.proc = subprocess.Popen(  # noqa: S603 - our own argv
             argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-            env=env, start_new_session=True,
+            env=env, preexec_fn=_die_with_parent,
         )  # fmt: skip
         deadline = time.monotonic() + start_timeout_s
         while not (_listening(self.host, self.grpc_port) and _listening(self.host, self.web_port)):

@@ -37,7 +37,6 @@ import numpy as np
 
 from firmware_bridge.frames import quat_to_matrix
 from groundstation.errors import ConfigError, InputDataError
-from groundstation.mapping.surface import std_colors
 
 #: ``mapper.fit`` flag bit: the observation is a flagged false-positive contact.
 FLAG_FALSE_POSITIVE = 0x01
@@ -278,6 +277,8 @@ class ViewModel:
             raise ViewerInputError(
                 f"triangle indices span [{t.min()}, {t.max()}] but there are {v.shape[0]} vertices"
             )
+        from groundstation.mapping.surface import std_colors  # lazy: scipy/skimage are slow
+
         if self.settings.std_range is not None:
             colors, rng = std_colors(sd, self.settings.std_range)
         elif sd.size:
