@@ -57,22 +57,24 @@ _TABLE = (
     ),
     FoxgloveChannel(
         "/vehicle/pose", "foxglove.PoseInFrame",
-        "mocap pose of the vehicle in frame world (metres, quaternion body -> world)",
+        "mocap pose of the vehicle in frame world (metres, quaternion body -> world), up to "
+        "50 Hz of data time",
     ),
     FoxgloveChannel(
         "/tf", "foxglove.FrameTransform",
-        "world -> body, from every valid mocap pose (the frame tree: world, body)",
+        "world -> body, from the valid mocap poses, up to 50 Hz (the frame tree: world, body)",
     ),
     FoxgloveChannel(
         "/vehicle/attitude", "foxglove.PoseInFrame",
-        "firmware attitude: orientation body FRD -> local NED in frame ned (position zero)",
+        "firmware attitude: orientation body FRD -> local NED in frame ned (position zero), "
+        "up to 50 Hz",
     ),
     FoxgloveChannel(
         "/imu/accel", "foxglove.Vector3",
-        "IMU specific force, body FRD, m/s^2 (x, y, z), at the IMU rate",
+        "IMU specific force, body FRD, m/s^2 (x, y, z), up to 50 Hz (the raw channel has all)",
     ),
     FoxgloveChannel(
-        "/imu/gyro", "foxglove.Vector3", "IMU angular rate, body FRD, rad/s (x, y, z)"
+        "/imu/gyro", "foxglove.Vector3", "IMU angular rate, body FRD, rad/s (x, y, z), up to 50 Hz"
     ),
     FoxgloveChannel(
         "/detector/signal", "foxglove.Vector3",

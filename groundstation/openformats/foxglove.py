@@ -6,10 +6,11 @@ protobuf messages of :mod:`~groundstation.openformats.channels` that they produc
 a view needs between messages: the detector signal's filter, the contact points and their
 states, the flown path. Unknown topics translate to nothing.
 
-Rates: IMU, attitude, pose, transform and detector signal follow their samples (200 Hz live);
-the trajectory is re-sent at most once per ``trajectory_period_s`` of data time and the contact
-cloud at most once per ``contacts_period_s`` (and after every fit); :meth:`finish` sends the
-last state of both.
+Rates: the detector signal follows every IMU sample (200 Hz live); IMU, attitude, pose and
+``/tf`` are thinned to ``sample_rate_hz`` (50 Hz: plenty for plots and the 3D view, and it
+halves the cost of writing them; the raw bytes keep every sample); the trajectory is re-sent
+at most once per ``trajectory_period_s`` of data time and the contact cloud at most once per
+``contacts_period_s`` (and after every fit); :meth:`finish` sends the last state of both.
 """
 
 from __future__ import annotations
@@ -58,8 +59,10 @@ class FoxgloveMessage:
 
 @dataclasses.dataclass(frozen=True)
 class TranslatorSettings:
-    """How often growing state is re-sent, seconds of data time, and how the path is thinned."""
+    """How often growing state is re-sent, seconds of data time, how the path is thinned, and
+    the rate of the IMU / attitude / pose channels (None: every sample)."""
 
+    sample_rate_hz: float | None = 50.0
     trajectory_period_s: float = 1.0
     contacts_period_s: float = 0.5
     trajectory_spacing_m: float = 0.05
@@ -128,6 +131,8 @@ class FoxgloveTranslator:
         self._body_id: int | None = None
         self._event_begin: dict[int, int] = {}
         self._event_info: dict[int, tuple[float, np.ndarray, np.ndarray, float | None]] = {}
+        self._due = {"imu": -(2**62), "attitude": -(2**62), "pose": -(2**62)}
+        self._period = 0 if s.sample_rate_hz is None else int(1e9 / s.sample_rate_hz)
         self._traj_sent = (0, -(2**62))  # (version, data time)
         self._contacts_sent = (0, -(2**62))
         self._last_t = 0
@@ -176,7 +181,7 @@ class FoxgloveTranslator:
             return self._imu(p, a, src, log_t)
         if topic == "samples.attitude":
             t = int(p.get("t_station_ns", src))
-            out = [self._attitude(a, t, log_t)]
+            out = [self._attitude(a, t, log_t)] if self._take("attitude", t) else []
             return out + self._signal(self.signal.push_attitude(t, a["q_wxyz"]), log_t)
         if topic == "samples.pose":
             return self._pose(p, a, src, log_t)
@@ -200,6 +205,17 @@ class FoxgloveTranslator:
             return [self._log(2, str(p.get("process", "")), text, src, log_t)]
         return []
 
+    def _take(self, stream: str, t: int) -> bool:
+        """Thin a sample stream to ``sample_rate_hz`` of data time."""
+        due = self._due[stream]
+        if t < due - 2 * self._period:  # time went back (a new replay): restart
+            due = t
+        if t < due:
+            return False
+        nxt = due + self._period  # a grid of due times; resynchronised after a gap
+        self._due[stream] = nxt if nxt > t else t + self._period
+        return True
+
     def _msg(self, topic: str, pb: Any, log_t: int, pub_t: int) -> FoxgloveMessage:
         return FoxgloveMessage(topic, pb.SerializeToString(), int(log_t), int(pub_t))
 
@@ -215,10 +231,14 @@ class FoxgloveTranslator:
     # -- samples -------------------------------------------------------------------------------
     def _imu(self, p, a, src: int, log_t: int) -> list[FoxgloveMessage]:
         t = int(p.get("t_station_ns", src))
-        out = [
-            self._vector3("/imu/accel", np.asarray(a["accel_mps2"]).reshape(3).tolist(), t, log_t),
-            self._vector3("/imu/gyro", np.asarray(a["gyro_radps"]).reshape(3).tolist(), t, log_t),
-        ]
+        out = []
+        if self._take("imu", t):
+            out = [
+                self._vector3("/imu/accel", np.asarray(a["accel_mps2"]).reshape(3).tolist(), t,
+                              log_t),
+                self._vector3("/imu/gyro", np.asarray(a["gyro_radps"]).reshape(3).tolist(), t,
+                              log_t),
+            ]  # fmt: skip
         return out + self._signal(self.signal.push_imu(t, a["accel_mps2"]), log_t)
 
     def _signal(self, values: list[tuple[int, float]], log_t: int) -> list[FoxgloveMessage]:
@@ -246,6 +266,9 @@ class FoxgloveTranslator:
         if not all(math.isfinite(v) for v in (*pos, *q)):
             return []
         t = int(p.get("t_station_ns", src))
+        self.trajectory.add(t, pos)
+        if not self._take("pose", t):
+            return self._trajectory(t, force=False, log_t=log_t)
         pose = _pb("foxglove.PoseInFrame")(frame_id=WORLD)
         _stamp(pose, t)
         _set_pose(pose.pose, pos, q)
@@ -254,7 +277,6 @@ class FoxgloveTranslator:
         tf.translation.x, tf.translation.y, tf.translation.z = pos
         tf.rotation.w, tf.rotation.x, tf.rotation.y, tf.rotation.z = q
         out = [self._msg("/vehicle/pose", pose, log_t, t), self._msg("/tf", tf, log_t, t)]
-        self.trajectory.add(t, pos)
         return out + self._trajectory(t, force=False, log_t=log_t)
 
     # -- derived -------------------------------------------------------------------------------
@@ -364,7 +386,7 @@ CLOUD_DTYPE = np.dtype(
     [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"),
      ("alpha", "u1"), ("state", "u1"), ("p_false", "<f4"), ("u", "<f4"), ("event_id", "<i4")]
 )  # fmt: skip
-_FIELD_TYPES = {"u1": 1, "<f4": 7, "<i4": 6}  # foxglove.PackedElementField.NumericType
+_FIELD_TYPES = {"|u1": 1, "<f4": 7, "<i4": 6}  # foxglove.PackedElementField.NumericType
 
 
 def contact_cloud(arrays: Mapping[str, np.ndarray], t_ns: int):

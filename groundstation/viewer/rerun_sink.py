@@ -17,7 +17,7 @@ Two parts:
   ``world/vehicle``             Transform3D (mocap pose, <= 20 Hz) + axes triad      poses
   ``signal/accel_g``            Scalars: filtered |a| in G (the detector's signal)   IMU + att.
   ``signal/threshold_g``        Scalars: the threshold a0 (and ``release_g``)        settings
-  ``signal/events``             SeriesPoints at each contact event (peak G)          events
+  ``signal/events``             SeriesPoints at each contact event's end (its peak)  events
   ``log``                       TextLog: events, fits, warnings and errors           all
   ============================  ===================================================  ===========
 
@@ -281,12 +281,13 @@ class RerunLogger:
             vectors=np.eye(3) * 0.3, colors=[[230, 40, 40], [40, 200, 40], [40, 90, 230]]
         )
         self.rr.log("world/vehicle/axes", triad, static=True, recording=self.rec)
-        self.rr.log(
-            "signal/threshold_g",
-            self.rr.SeriesLines(colors=[[214, 39, 40]], names=["threshold a0"]),
-            static=True,
-            recording=self.rec,
+        series = (
+            ("signal/accel_g", [40, 40, 40], "filtered |a|"),
+            ("signal/threshold_g", [214, 39, 40], "threshold a0"),
         )
+        for path, color, name in series:
+            style = self.rr.SeriesLines(colors=[color], names=[name])
+            self.rr.log(path, style, static=True, recording=self.rec)
         self.rr.log("signal/events", self.rr.SeriesPoints(colors=[[217, 25, 143]],
                     markers=["diamond"], names=["contact events (peak G)"]), static=True,
                     recording=self.rec)  # fmt: skip
@@ -340,7 +341,7 @@ class RerunLogger:
             ev, state, peak = int(p["id"]), str(p["state"]), float(p["peak_g"])
             self.contacts.add_event(ev, state, p.get("p_false"))
             self._at(src)
-            if state == "begin":
+            if state == "end":  # the event's peak, at its end
                 rr.log("signal/events", rr.Scalars(peak), recording=rec)
             extra = "" if p.get("p_false") is None else f", p_false {float(p['p_false']):.2f}"
             rr.log("log", rr.TextLog(f"contact {ev} {state}: peak {peak:.2f} G{extra}",
