@@ -164,4 +164,11 @@ def test_live_web_view_and_the_live_recording_in_foxglove_schemas(tmp_path):
     for topic in ("/map/mesh", "/map/contacts", "/vehicle/trajectory", "/vehicle/pose", "/tf",
                   "/detector/signal", "/imu/accel", "/vehicle/attitude", "/log"):  # fmt: skip
         assert sum(counts.get(topic, {}).values()) > 0, (topic, counts)
+    from groundstation.acquisition import layout
+    from groundstation.acquisition.reader import open_recording
+
+    with open_recording(rec_path) as rec:  # the wall clock of the session, for export tlog
+        offset = layout.parse_utc_offset(rec.metadata())
+        first = rec.summary.start_ns
+    assert abs((first + offset) / 1e9 - time.time()) < 3600, "utc_offset_ns is not wall time"
     _rrd_ok(rrd)
