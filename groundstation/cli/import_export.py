@@ -155,4 +155,6 @@ def run_export_foxglove(args: argparse.Namespace) -> int:
         print(f"  {topic:<22} {n:>8}")
     if summary.skipped:
         print(f"  skipped {summary.skipped} (old Foxglove or unknown channels)")
+    if summary.bad:
+        print(f"  {summary.bad} malformed message(s) copied but not translated")
     return 0

@@ -153,6 +153,7 @@ class ExportSummary:
     skipped: int
     foxglove: dict[str, int]
     decoded_samples: bool
+    bad: int = 0
 
 
 def export_foxglove(
@@ -209,7 +210,7 @@ def export_foxglove(
                     for d in samples:
                         fox.add(d.envelope(0), d.recv_ns)
             fox.finish()
-    return ExportSummary(copied, skipped, dict(translator.counts), decoded)
+    return ExportSummary(copied, skipped, dict(translator.counts), decoded, translator.bad)
 
 
 # -- pipeline results as envelopes ----------------------------------------------------------------

@@ -116,6 +116,7 @@ class ReplayOutput:
         return {
             "raw_copied": copied,
             "foxglove": dict(self.translator.counts),
+            "foxglove_bad": self.translator.bad,
             "bytes": stats.bytes_written,
         }
 

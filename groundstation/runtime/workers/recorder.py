@@ -161,6 +161,11 @@ class RecorderProcess:
         rec = self.recorder
         written = rec.stats.bytes_written if rec is not None else 0
         topics["recording"] = {"bytes_written": written, "dropped": self.dropped, "bad": self.bad}
+        if self.foxglove is not None:  # translations written / messages it could not translate
+            topics["foxglove"] = {
+                "written": self.foxglove.written,
+                "bad": self.foxglove.translator.bad,
+            }
         self.pub.publish(
             "status",
             {
