@@ -176,6 +176,8 @@ class _WebView:
         settings = rerun_settings(args)
         self.server = RerunServer(settings)
         print(f"replay: Rerun web viewer at {self.server.web_url}", file=sys.stderr, flush=True)
+        if self.server.exposure_warning:
+            print(f"replay: {self.server.exposure_warning}", file=sys.stderr, flush=True)
         self.stream = open_stream(settings, self.server)
         self.logger = RerunLogger(
             self.stream, config.contact, config.alignment, t0_ns=t0_ns, settings=settings

@@ -158,6 +158,8 @@ def _run_rerun(args: argparse.Namespace, endpoints: list[str], key: bytes | None
         logger = RerunLogger(stream, cfg.contact, cfg.alignment, settings=settings)
         proc = RerunViewerProcess(endpoints, logger, stop=StopSignals(), server_public_key=key)
         _stderr(f"viewer: Rerun web viewer at {server.web_url}")
+        if server.exposure_warning:
+            _stderr(f"viewer: {server.exposure_warning}")
         _stderr(f"viewer: listening on {', '.join(endpoints)}")
         status = proc.run()
         stream.flush()

@@ -160,6 +160,23 @@ class RerunServer:
             time.sleep(0.1)
 
     @property
+    def exposure_warning(self) -> str | None:
+        """A warning to print when the servers listen beyond this machine (no authentication)."""
+        import ipaddress
+
+        try:
+            loopback = ipaddress.ip_address(self.settings.bind).is_loopback
+        except ValueError:
+            loopback = self.settings.bind == "localhost"
+        if loopback:
+            return None
+        return (
+            f"WARNING: the web view listens on {self.settings.bind} (ports {self.web_port} and "
+            f"{self.grpc_port}) with no authentication: anyone who can reach them sees the "
+            "session (README, Web view: use an SSH tunnel instead)"
+        )
+
+    @property
     def grpc_url(self) -> str:
         """Where the SDK (and viewers) connect: ``rerun+http://HOST:PORT/proxy``."""
         return f"rerun+http://{self.host}:{self.grpc_port}/proxy"
