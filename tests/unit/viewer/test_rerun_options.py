@@ -60,3 +60,13 @@ def test_view_and_replay_accept_the_viewer_options():
         add(p)
         args = p.parse_args([*argv, "--web-bind", "0.0.0.0", "--grpc-port", "0"])
         assert (args.viewer, args.web_bind, args.grpc_port) == ("rerun", "0.0.0.0", 0)
+
+
+@pytest.mark.parametrize(("bind", "warned"), [("127.0.0.1", False), ("::1", False),
+                                              ("localhost", False), ("0.0.0.0", True)])  # fmt: skip
+def test_listening_beyond_loopback_is_warned_about(bind, warned):
+    from groundstation.viewer.rerun_server import RerunServer
+
+    server = RerunServer.__new__(RerunServer)  # the property only: no process started
+    server.settings, server.web_port, server.grpc_port = RerunSettings(bind=bind), 9090, 9876
+    assert (server.exposure_warning is not None) == warned
