@@ -118,8 +118,11 @@ def _wall_clock(
     end_ns: int | None,
     utc_start: float | None,
     start_ns: int | None,
+    utc_offset_ns: int | None = None,
 ) -> tuple[int, str]:
     """(UTC ns - log ns, which reference) for :func:`export_tlog` (module docstring order)."""
+    if utc_offset_ns is not None:
+        return int(utc_offset_ns), "the offset given"
     if utc_start is not None:
         return int(utc_start * 1e9) - int(start_ns or 0), "--utc-start"
     offset = layout.parse_utc_offset(meta)
@@ -138,6 +141,7 @@ def export_tlog(
     *,
     natnet_as_mocap: bool = True,
     utc_start: float | None = None,
+    utc_offset_ns: int | None = None,
 ) -> ExportReport:
     """Write the MAVLink frames of recording ``src`` (and optionally its mocap poses) to ``out``.
 
@@ -146,6 +150,9 @@ def export_tlog(
     utc_start : float, optional
         UTC time of the recording's first message, seconds since the epoch (overrides the
         clock found in the recording).
+    utc_offset_ns : int, optional
+        UTC minus log time, ns, exactly (overrides everything; 0 writes the log times as they
+        are, for a lossless MCAP -> tlog -> MCAP round trip).
 
     Raises
     ------
@@ -204,7 +211,9 @@ def export_tlog(
     garbage = sum(s.garbage_bytes for s in splitters.values())
     if garbage:
         skipped["damaged MAVLink bytes"] = garbage
-    offset, report.clock = _wall_clock(meta, system_time, Path(src), end_ns, utc_start, start_ns)
+    offset, report.clock = _wall_clock(
+        meta, system_time, Path(src), end_ns, utc_start, start_ns, utc_offset_ns
+    )
     if chunks:
         report.first_utc_us = (chunks[0][0] + offset) // 1000
     try:
