@@ -26,7 +26,7 @@ from tests.integration.test_open_formats import decode_foxglove
 from tests.integration.test_pilot_sitl import free_udp_port, start, stop, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
-pytestmark = pytest.mark.timeout(480)
+pytestmark = pytest.mark.timeout(900)
 
 
 def _viridis_fraction(png: Path) -> float:
@@ -110,7 +110,7 @@ def test_replay_serves_the_web_viewer_on_loopback_and_the_page_shows_the_mesh(tm
                        300, "the replay to finish and serve", poll=0.5)  # fmt: skip
         assert url.startswith("http://127.0.0.1:")
         assert _listening_addresses(proc.pid) == {"127.0.0.1"}
-        frac = _screenshot_until_mesh(url, tmp_path / "replay_web.png", 180)
+        frac = _screenshot_until_mesh(url, tmp_path / "replay_web.png", 300)
         assert frac > 0.01, f"no mesh in the screenshot {tmp_path / 'replay_web.png'}"
     finally:
         rc = stop(proc, signal.SIGINT, timeout=60)
@@ -154,7 +154,7 @@ def test_live_web_view_and_the_live_recording_in_foxglove_schemas(tmp_path):
             )
 
         wait_for(meshes, 200, "a second mesh on the status line", poll=1.0)
-        frac = _screenshot_until_mesh(url, tmp_path / "live_web.png", 150)
+        frac = _screenshot_until_mesh(url, tmp_path / "live_web.png", 300)
         assert frac > 0.01, f"no mesh in the screenshot {tmp_path / 'live_web.png'}"
     finally:
         rc = stop(live) if live is not None else -1
