@@ -4,17 +4,31 @@
 set -euo pipefail
 cd "$(dirname "$0")"
 
-# System libraries: open3d needs libEGL/libGL (offscreen rendering) and libusb at import time.
+# Options (environment):
+#   GS_NO_RERUN=1    skip the `rerun` extra (rerun-sdk + pyarrow, ~650 MB in .venv): no
+#                    `--viewer rerun`, its tests skip with a message.
+#   GS_NO_BROWSER=1  skip Debian's chromium (~350 MB): the browser checks of report.html and of
+#                    the Rerun web viewer skip with a message.
+
+# System libraries: open3d needs libEGL/libGL (offscreen rendering) and libusb at import time;
+# the browser tests need Debian's chromium (Playwright drives it; no browser is downloaded).
 need_apt=()
-for lib in libEGL.so.1 libGL.so.1 libusb-1.0.so.0; do
-    ldconfig -p 2>/dev/null | grep -q "$lib" || need_apt+=("$lib")
+pkgs=()
+for pair in libEGL.so.1:libegl1 libGL.so.1:libgl1 libusb-1.0.so.0:libusb-1.0-0; do
+    lib=${pair%%:*}
+    if ! ldconfig -p 2>/dev/null | grep -q "$lib"; then
+        need_apt+=("$lib"); pkgs+=("${pair#*:}")
+    fi
 done
+if [ "${GS_NO_BROWSER:-0}" != "1" ] && ! command -v chromium >/dev/null 2>&1; then
+    need_apt+=("chromium"); pkgs+=("chromium")
+fi
 if [ ${#need_apt[@]} -gt 0 ]; then
-    echo "bootstrap: installing system libraries for: ${need_apt[*]}"
+    echo "bootstrap: installing system packages for: ${need_apt[*]}"
     SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
     $SUDO apt-get update -qq
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends \
-        libegl1 libgl1 libusb-1.0-0 >/dev/null
+        "${pkgs[@]}" >/dev/null
 fi
 
 PY=${PYTHON:-python3}
@@ -22,12 +36,14 @@ if [ ! -x .venv/bin/python ]; then
     echo "bootstrap: creating .venv with $($PY --version)"
     $PY -m venv .venv
 fi
-# Reinstall only when pyproject.toml changed since the last successful install.
-stamp=.venv/.installed-$(sha1sum pyproject.toml | cut -c1-12)
+extras="dev,rerun"
+[ "${GS_NO_RERUN:-0}" = "1" ] && extras="dev"
+# Reinstall only when pyproject.toml (or the extras chosen) changed since the last install.
+stamp=.venv/.installed-$( (cat pyproject.toml; echo "$extras") | sha1sum | cut -c1-12)
 if [ ! -f "$stamp" ]; then
-    echo "bootstrap: installing Python packages (about 2 minutes the first time)"
+    echo "bootstrap: installing Python packages [$extras] (about 2 minutes the first time)"
     .venv/bin/python -m pip install -q --upgrade pip
-    .venv/bin/python -m pip install -q -e ".[dev]"
+    .venv/bin/python -m pip install -q -e ".[$extras]"
     rm -f .venv/.installed-*
     touch "$stamp"
 fi

@@ -6,8 +6,8 @@ newer version refuses rather than guesses.
 
 Channels
 --------
-One channel per bus topic (``groundstation.bus.topics``), registered on first use. No MCAP
-schemas are used (``schema_id = 0``): the message encoding names the format.
+One channel per bus topic (``groundstation.bus.topics``), registered on first use. The station's
+own channels use no MCAP schema (``schema_id = 0``): the message encoding names the format.
 
 ===================  ==================  =========================================================
 topic                message_encoding    message data
@@ -22,6 +22,12 @@ topic                message_encoding    message data
 any other topic      ``gs-envelope/1``   one bus envelope in its single-blob form
                                          (``groundstation.bus.envelope.to_bytes``)
 ===================  ==================  =========================================================
+
+Beside them, Foxglove channels (topics starting with ``/``, ``message_encoding = "protobuf"``,
+an MCAP schema of encoding ``protobuf`` named after the Foxglove well-known schema, e.g.
+``foxglove.SceneUpdate``) carry the same data in a form outside tools decode; their table is
+``groundstation.openformats.channels``. Readers of this layout select channels by topic and
+leave the others alone.
 
 Raw channels hold the wire bytes and nothing else, so replay re-runs the same decoders on them and
 outside tools can extract them. Channel metadata always carries ``layout`` (the layout version)
@@ -46,6 +52,9 @@ File-level records
   ``segment`` (``"0"``, ``"1"``, ...): a session is its ordered segments, ``flight.mcap``,
   ``flight.001.mcap``, ... (:mod:`~groundstation.acquisition.segments`), each a complete MCAP
   file of its own with the same metadata apart from ``segment``.
+  ``utc_offset_ns`` (optional, written by live recorders): UTC time minus the log-time clock
+  when the recording started, integer ns as text, so ``log_time + utc_offset_ns`` is the wall
+  clock (``export tlog`` dates its records with it).
 - Attachment ``truth.json`` (media type ``application/json``): ground truth when it exists (the
   scene, contact events, reference trajectories), one JSON object.
 """
@@ -93,6 +102,7 @@ KEY_MOTIVE_UP = "motive_up"
 KEY_CONFIG = "config"
 KEY_SESSION = "session"
 KEY_SEGMENT = "segment"
+KEY_UTC_OFFSET = "utc_offset_ns"
 
 
 class LayoutError(GroundstationError, ValueError):
@@ -233,6 +243,14 @@ def segment_index(meta: Mapping[str, str]) -> int | None:
     except ValueError:
         return None
     return value if value is not None and value >= 0 else None
+
+
+def parse_utc_offset(meta: Mapping[str, str] | None) -> int | None:
+    """The ``utc_offset_ns`` of a metadata record, or None when absent or unreadable."""
+    try:
+        return int((meta or {})[KEY_UTC_OFFSET])
+    except (KeyError, ValueError):
+        return None
 
 
 def parse_sources(meta: Mapping[str, str]) -> list[str]:

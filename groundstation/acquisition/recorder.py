@@ -168,6 +168,8 @@ class Recorder:
         self.path = Path(path)
         self.stats = RecorderStats()
         self._channels: dict[layout.ChannelSpec, int] = {}
+        self._typed: dict[tuple[str, str, str], int] = {}
+        self._schemas: dict[str, int] = {}
         self._sequence: Counter = Counter()
         self._max_span = int(max_chunk_span_ns)
         self._chunk_start_ns: int | None = None
@@ -353,6 +355,57 @@ class Recorder:
         self.stats.durable_messages += self._open_in_chunk
         self._open_in_chunk = 0
         self._chunk_start_ns = None
+
+    def write_typed(
+        self,
+        data: bytes,
+        topic: str,
+        log_time_ns: int,
+        publish_time_ns: int | None = None,
+        *,
+        schema_name: str,
+        schema_encoding: str,
+        schema_data: bytes,
+        message_encoding: str,
+    ) -> None:
+        """Append one message on a channel with an MCAP schema (e.g. a Foxglove protobuf
+        channel, ``groundstation.openformats.channels``): one schema per name, one channel per
+        topic; same durability, statistics and errors as :meth:`write`."""
+        self._check_usable()
+        topic = layout.validate_topic(topic)
+        log_time = _as_ns(log_time_ns, "log_time_ns")
+        pub_time = log_time if publish_time_ns is None else _as_ns(publish_time_ns, "publish")
+        try:
+            key = (topic, message_encoding, schema_name)
+            cid = self._typed.get(key)
+            if cid is None:
+                sid = self._schemas.get(schema_name)
+                if sid is None:
+                    sid = self._writer.register_schema(schema_name, schema_encoding, schema_data)
+                    self._schemas[schema_name] = sid
+                meta = {layout.KEY_LAYOUT: layout.LAYOUT_VERSION}
+                cid = self._writer.register_channel(topic, message_encoding, sid, meta)
+                self._typed[key] = cid
+            before = self._stream.tell()
+            self._writer.add_message(
+                channel_id=cid,
+                log_time=log_time,
+                data=bytes(data),
+                publish_time=pub_time,
+                sequence=self._sequence[cid] & 0xFFFFFFFF,
+            )
+            self._sequence[cid] += 1
+            self._account(topic, log_time)
+            if self._stream.tell() != before:
+                self._chunk_closed()
+            elif self._chunk_start_ns is not None and (
+                log_time - self._chunk_start_ns >= self._max_span
+            ):
+                self._writer.flush()
+                self._chunk_closed()
+        except OSError as exc:
+            self._fail(exc, "write")
+        self._sync_stats()
 
     def add_truth(self, truth: Mapping[str, Any], log_time_ns: int = 0) -> None:
         """Attach ground truth as ``truth.json`` (see :func:`layout.encode_truth`)."""

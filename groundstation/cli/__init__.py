@@ -67,6 +67,11 @@ COMMANDS: dict[tuple[str, ...], Command] = {
         "export_tlog",
         "write the MAVLink traffic of an MCAP log as a .tlog (QGroundControl replay)",
     ),
+    ("export", "foxglove"): Command(
+        "import_export",
+        "export_foxglove",
+        "copy a recording with Foxglove channels added (mesh, contacts, pose, signal, logs)",
+    ),
     ("config", "show"): Command(
         "config", "config_show", "print the effective configuration as TOML"
     ),

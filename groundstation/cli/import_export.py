@@ -7,6 +7,8 @@ output file behind (``importers.atomic_output``) and prints ``error:``/``hint:``
   runs under a time limit: a corrupted log that makes it loop is reported, not waited for).
 - ``groundstation import tlog SRC --out LOG.mcap``: MAVLink telemetry log -> MCAP.
 - ``groundstation export tlog LOG.mcap --out FILE.tlog``: a recording's MAVLink -> tlog.
+- ``groundstation export foxglove OLD.mcap --out NEW.mcap``: a recording with the Foxglove
+  channels (``groundstation.openformats.channels``) added.
 """
 
 from __future__ import annotations
@@ -120,13 +122,73 @@ def add_export_tlog_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="do not convert NatNet poses to ATT_POS_MOCAP frames",
     )
+    parser.add_argument(
+        "--utc-start",
+        default=None,
+        metavar="ISO",
+        help="UTC time of the first message (e.g. 2026-05-01T10:00:00Z); default: the "
+        "recording's own clock (utc_offset_ns metadata, else the vehicle's SYSTEM_TIME, else "
+        "the file's modification time as its end)",
+    )
+
+
+def _utc_seconds(text: str | None) -> float | None:
+    if text is None:
+        return None
+    import datetime
+
+    from groundstation.errors import ConfigError
+
+    try:
+        t = datetime.datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise ConfigError(
+            f"--utc-start {text!r} is not an ISO time", hint="e.g. 2026-05-01T10:00:00Z"
+        ) from None
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=datetime.UTC)
+    return t.timestamp()
 
 
 def run_export_tlog(args: argparse.Namespace) -> int:
     from groundstation.acquisition.importers.export_tlog import export_tlog
 
+    start = _utc_seconds(args.utc_start)  # a bad option before anything touches the output
     _claim(args)
-
-    report = export_tlog(args.src, args.out, natnet_as_mocap=not args.no_mocap)
+    report = export_tlog(args.src, args.out, natnet_as_mocap=not args.no_mocap, utc_start=start)
     print(report.describe())
+    return 0
+
+
+def add_export_foxglove_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("src", help="recording (.mcap) made before Foxglove channels existed")
+    parser.add_argument("--out", required=True, help="new recording (.mcap) with them added")
+    parser.add_argument("--config", default=None, help="TOML configuration file")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a setting"
+    )
+
+
+def run_export_foxglove(args: argparse.Namespace) -> int:
+    """Copy a recording and add the Foxglove channels (groundstation.openformats.export)."""
+    from groundstation.config import load_config
+    from groundstation.openformats.export import export_foxglove
+    from groundstation.openformats.foxglove import FoxgloveTranslator
+
+    cfg = load_config(args.config, args.set)
+    summary = export_foxglove(
+        args.src,
+        args.out,
+        FoxgloveTranslator(cfg.contact, cfg.alignment),
+        acquisition=cfg.acquisition,
+        created_by=f"groundstation export foxglove {args.src} --out {args.out}",
+    )
+    how = " (samples decoded from the raw bytes)" if summary.decoded_samples else ""
+    print(f"exported {args.src} -> {args.out}: {summary.copied} messages copied{how}")
+    for topic, n in summary.foxglove.items():
+        print(f"  {topic:<22} {n:>8}")
+    if summary.skipped:
+        print(f"  skipped {summary.skipped} (old Foxglove or unknown channels)")
+    if summary.bad:
+        print(f"  {summary.bad} malformed message(s) copied but not translated")
     return 0

@@ -52,7 +52,12 @@ from pathlib import Path
 from groundstation.bus.pubsub import Subscriber
 from groundstation.errors import ConfigError, GroundstationError
 from groundstation.runtime.alerts import Alerts, AlertSettings
-from groundstation.runtime.configuration import Resolved, resolve, write_session_config
+from groundstation.runtime.configuration import (
+    CONFIG_FILE,
+    Resolved,
+    resolve,
+    write_session_config,
+)
 from groundstation.runtime.session import Session, new_session_id
 from groundstation.runtime.sources import source_worker
 from groundstation.runtime.status import StatusBoard
@@ -97,6 +102,16 @@ def add_live_arguments(parser: argparse.ArgumentParser) -> None:
     view.add_argument("--no-viewer", action="store_true", help="do not start the viewer")
     view.add_argument("--headless", action="store_true", help="viewer writes PNG/PLY to --out")
     parser.add_argument("--out", default="live_view", help="--headless output folder")
+    parser.add_argument(
+        "--viewer",
+        choices=("open3d", "rerun"),
+        default="open3d",
+        help="open3d: window or --headless files (default); rerun: Rerun's web viewer, served "
+        "on --web-bind (127.0.0.1 by default) at the address printed",
+    )
+    from groundstation.cli.replay import add_viewer_arguments
+
+    add_viewer_arguments(parser)
     parser.add_argument(
         "--no-mapping", action="store_true", help="do not start the detector and mapper"
     )
@@ -200,8 +215,16 @@ def plan(args: argparse.Namespace, session_id: str) -> tuple[Session, list[Worke
         )
     if not args.no_viewer:
         view = ["--headless", "--out", str(args.out)] if args.headless else []
+        if args.viewer == "rerun":
+            # the rerun sink reads the session's resolved configuration (written before start)
+            config_file = str(Path(session.directory) / CONFIG_FILE)
+            view = ["--viewer", "rerun", "--web-bind", args.web_bind, "--web-port",
+                    str(args.web_port), "--grpc-port", str(args.grpc_port),
+                    "--config", config_file]  # fmt: skip
+            view += ["--rrd", str(args.rrd)] if args.rrd else []
         argv = python_module(VIEWER_MODULE, "--session", session.session_id,
-                             "--session-root", session.root, *view)  # fmt: skip
+                             "--session-root", session.root,
+                             "--publishers", ",".join(session.publishers), *view)  # fmt: skip
         specs.append(WorkerSpec("viewer", argv, max_restarts=3))
     return session, specs
 

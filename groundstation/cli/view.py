@@ -5,9 +5,14 @@ Examples::
     groundstation view --connect tcp://127.0.0.1:5601,tcp://127.0.0.1:5602
     groundstation view --session 1a2b3c4d --headless --out results/view --every 5
 
-A window (Open3D legacy Visualizer) by default; ``--headless`` writes ``snapshot_<fit>.png``,
-``mesh_<fit>.ply`` and ``points_<fit>.ply`` into ``--out`` for every ``--every``-th mesh.
-Ctrl-C (SIGINT) or SIGTERM exits cleanly (status 0).
+    groundstation view --session 1a2b3c4d --viewer rerun --web-port 9090
+
+A window (Open3D legacy Visualizer) by default; ``--headless`` writes ``snapshot_<fit>.png``
+(the three-view renderer with metre axes that replay snapshots use; ``--renderer open3d`` for
+an offscreen perspective render instead), ``mesh_<fit>.ply`` and ``points_<fit>.ply`` into
+``--out`` for every ``--every``-th mesh. ``--viewer rerun`` serves Rerun's web viewer instead
+(``viewer.rerun_sink``; bound to 127.0.0.1 unless ``--web-bind`` says otherwise) and prints the
+address to open. Ctrl-C (SIGINT) or SIGTERM exits cleanly (status 0).
 """
 
 from __future__ import annotations
@@ -38,14 +43,21 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> None:
     )
     src.add_argument("--server-key", metavar="FILE", help="CURVE public key file of the publishers")
     out = parser.add_argument_group("sink")
+    out.add_argument(
+        "--viewer",
+        choices=("open3d", "rerun"),
+        default="open3d",
+        help="open3d: window or --headless files (default); rerun: Rerun's web viewer",
+    )
     out.add_argument("--headless", action="store_true", help="write PNG/PLY files, no window")
     out.add_argument("--out", default="view_out", help="output folder for --headless")
     out.add_argument("--every", type=int, default=1, help="--headless: every N-th mesh")
     out.add_argument(
         "--renderer",
         choices=("auto", "open3d", "matplotlib"),
-        default="auto",
-        help="--headless PNG renderer (auto: Open3D offscreen, else matplotlib projections)",
+        default="matplotlib",
+        help="--headless PNG renderer: matplotlib (default) three views with metre axes, as "
+        "replay snapshots; open3d an offscreen perspective render; auto open3d, else matplotlib",
     )
     out.add_argument("--max-snapshots", type=int, default=0, help="--headless: stop after N")
     out.add_argument("--width", type=int, default=None, help="pixels (960 headless, 1280 window)")
@@ -57,6 +69,14 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> None:
     what.add_argument("--show-internal", action="store_true", help="draw internal points")
     what.add_argument("--show-external", action="store_true", help="draw external points")
     what.add_argument("--std-range", metavar="LO,HI", help="fixed std colour range")
+    what.add_argument("--config", default=None, help="TOML configuration (--viewer rerun: the "
+                      "detector threshold and filter of the signal plot)")  # fmt: skip
+    what.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a setting"
+    )
+    from groundstation.cli.replay import add_viewer_arguments
+
+    add_viewer_arguments(parser)
 
 
 def _endpoints(args: argparse.Namespace) -> list[str]:
@@ -122,6 +142,39 @@ def _make_sink(args: argparse.Namespace):
     )
 
 
+def _run_rerun(args: argparse.Namespace, endpoints: list[str], key: bytes | None) -> int:
+    """``--viewer rerun``: Rerun's server + the bus -> Rerun loop until Ctrl-C / SIGTERM."""
+    import signal
+
+    from groundstation.cli.replay import rerun_settings
+    from groundstation.config import load_config
+    from groundstation.runtime.session import StopSignals
+    from groundstation.runtime.workers.rerun_viewer import RerunViewerProcess
+    from groundstation.viewer.rerun_sink import RerunLogger, RerunServer, open_stream
+
+    cfg = load_config(args.config, args.set)
+    settings = rerun_settings(args)
+    server = RerunServer(settings)
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        stream = open_stream(settings, server)
+        logger = RerunLogger(stream, cfg.contact, cfg.alignment, settings=settings)
+        proc = RerunViewerProcess(endpoints, logger, stop=StopSignals(), server_public_key=key)
+        _stderr(f"viewer: Rerun web viewer at {server.web_url}")
+        if server.exposure_warning:
+            _stderr(f"viewer: {server.exposure_warning}")
+        _stderr(f"viewer: listening on {', '.join(endpoints)}")
+        status = proc.run()
+        stream.flush()
+        stream.disconnect()
+        _stderr(proc.summary())
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        server.close()
+    return status
+
+
 def run_view(args: argparse.Namespace) -> int:
     import signal
 
@@ -138,6 +191,8 @@ def run_view(args: argparse.Namespace) -> int:
         from groundstation.bus.security import CurveKeys
 
         key = CurveKeys.load(args.server_key).public
+    if args.viewer == "rerun":
+        return _run_rerun(args, endpoints, key)
     sink = _make_sink(args)
     try:
         proc = ViewerProcess(

@@ -52,6 +52,7 @@ def pipeline_workers(
     speed: float = math.inf,
     config_path: str | None = None,
     overrides: Sequence[str] = (),
+    window: str = "",
 ) -> list[WorkerSpec]:
     """Replay, detector and mapper workers of one replay session (command lines documented in
     the module docstring). With ``config_path`` / ``overrides`` every worker parses them;
@@ -63,7 +64,7 @@ def pipeline_workers(
         common += ["--set", item]
     speed_txt = "max" if math.isinf(speed) else repr(float(speed))
     replay = source_worker(
-        f"replay://{log_path}?speed={speed_txt}",
+        f"replay://{log_path}?speed={speed_txt}{window}",
         session,
         REPLAY_PUBLISHER,
         ("--wait-subscribers", "1", *common),
@@ -114,6 +115,8 @@ def run_multiprocess(
     progress: Callable[[str], None] | None = None,
     session_root: str = "/tmp",
     config: Config | None = None,
+    start: float | None = None,
+    end: float | None = None,
 ) -> PipelineResult:
     """Run the pipeline as processes on ``log_path`` and collect what they publish.
 
@@ -136,7 +139,8 @@ def run_multiprocess(
     session.write_info(command="replay")
     write_session_config(session.directory, resolved)
     sub = Subscriber(session.subscribe_endpoints(), COLLECT)
-    sup = Supervisor(pipeline_workers(log_path, session, speed))
+    window = "".join(f"&{k}={v!r}" for k, v in (("start", start), ("end", end)) if v is not None)
+    sup = Supervisor(pipeline_workers(log_path, session, speed, window=window))
     events, observations, fits = [], [], []
     last_mesh: tuple[int, SurfaceMesh] | None = None
     detector_summary: dict = {}

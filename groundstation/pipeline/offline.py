@@ -136,11 +136,19 @@ def detect_offline(log_path: str, config: Config | None = None) -> DetectionRun:
 
 
 def _stage_outputs(
-    stage: ContactStage, log_path: str, cfg: Config, progress: Callable[[int], None] | None
+    stage: ContactStage,
+    log_path: str,
+    cfg: Config,
+    progress: Callable[[int], None] | None,
+    start: float | None = None,
+    end: float | None = None,
+    tap: Callable[[Envelope], None] | None = None,
 ) -> Iterator[Envelope]:
-    for env in iter_replay(log_path, settings=cfg.acquisition):
+    for env in iter_replay(log_path, start, end, settings=cfg.acquisition):
         if env.topic not in INPUT_TOPICS:
             continue
+        if tap is not None:
+            tap(env)
         yield from stage.push(env)
         if progress is not None:
             progress(env.header.recv_ns)
@@ -166,6 +174,9 @@ def run_offline(
     keep_meshes: int = 3,
     map_mode: str = "live",
     checkpoints: int = 0,
+    start: float | None = None,
+    end: float | None = None,
+    tap: Callable[[Envelope], None] | None = None,
 ) -> PipelineResult:
     """Run the whole pipeline in process on ``log_path``.
 
@@ -186,6 +197,11 @@ def run_offline(
         matters.
     checkpoints : int
         Intermediate fits of ``map_mode = "final"``.
+    start, end : float, optional
+        Log window, seconds from the log start (``end`` exclusive): ``replay --start/--end``.
+    tap : callable, optional
+        Called with every decoded sample envelope before the detector sees it (replay outputs
+        translate them to Foxglove channels without decoding the log twice).
     """
     if map_mode not in ("live", "final"):
         raise ValueError(f"map_mode must be live or final, got {map_mode!r}")
@@ -208,7 +224,7 @@ def run_offline(
             progress((recv_ns - start_ns) / 1e9, duration, len(fits), _begins(events))
             next_report[0] = recv_ns + 5_000_000_000
 
-    for env in _stage_outputs(stage, log_path, cfg, tick):
+    for env in _stage_outputs(stage, log_path, cfg, tick, start, end, tap):
         if env.topic == "contact.event":
             events.append(env)
             continue

@@ -1,4 +1,5 @@
-"""Files of a pipeline run: ``mesh.ply``, ``observations.csv``, ``report.json``, ``snapshots/``.
+"""Files of a pipeline run: ``mesh.ply``, ``observations.csv``, ``report.json``, ``snapshots/``,
+``report.html`` and ``replay.mcap``.
 
 - ``mesh.ply``: the last good mesh, vertex colours = predictive std (``mapping.surface``).
 - ``observations.csv``: ``id, x, y, z, label, t_s, event_id, u, flag, p_false, dv_mps, rebound,
@@ -8,7 +9,12 @@
   event (empty when none); ``p_false_map``: the map's posterior that its event is false.
 - ``report.json``: :func:`build_report` (NaN written as ``null``).
 - ``snapshots/snapshot_<fit>.png``: the meshes of the last few fits with the observations
-  coloured by flag state (``viewer.headless.render_snapshot``, matplotlib projections).
+  coloured by flag state (``viewer.headless.render_snapshot``: the three-view renderer with
+  metre axes that live headless views use too; the true structure outlined when the log has
+  ground truth).
+- ``report.html``: the flight report (``pipeline.report``), self-contained.
+- ``replay.mcap``: the replay's output recording with Foxglove channels
+  (``openformats.replay_output``), when the caller filled a :class:`ReplayOutput`.
 """
 
 from __future__ import annotations
@@ -126,12 +132,14 @@ def write_observations_csv(result: PipelineResult, path: str | Path) -> Path:
 
 
 def write_snapshots(result: PipelineResult, folder: str | Path, last: int = 3) -> list[Path]:
-    """PNG snapshots of the last ``last`` fits that still hold a mesh."""
+    """PNG snapshots of the last ``last`` fits that still hold a mesh (captions count contacts
+    as the status line does: events begun by then and the events that fit flags)."""
     from groundstation.viewer.headless import render_snapshot
     from groundstation.viewer.scene import ViewModel
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    outline = ((result.truth or {}).get("scene") or {}).get("objects", [])
     out: list[Path] = []
     with_mesh = [f for f in result.fits if f.mesh is not None and not f.mesh.is_empty]
     for fit in with_mesh[-last:] if last > 0 else []:
@@ -139,18 +147,49 @@ def write_snapshots(result: PipelineResult, folder: str | Path, last: int = 3) -
         m = fit.mesh
         std = m.std if m.std is not None else np.zeros(len(m.vertices))
         vm.ingest_mesh(m.vertices, m.faces, std, fit.mesh_fit_index)
+        for e in result.events:
+            if e.header.source_ns <= fit.data_ns:
+                vm.ingest_event(int(e.payload["id"]), e.payload["state"])
         for o in result.observations:
             if o.t_ns <= fit.data_ns:
-                vm.ingest_observation(o.id, int(o.label), o.position)
-        vm.ingest_fit(fit.ids, fit.u, fit.flags, fit.fit_index)
+                vm.ingest_observation(o.id, int(o.label), o.position, o.event_id)
+        vm.ingest_fit(fit.ids, fit.u, fit.flags, fit.fit_index, fit.flagged_events or None)
         path = folder / f"snapshot_{fit.fit_index:04d}.png"
-        render_snapshot(vm.scene(), path, backend="matplotlib")
+        render_snapshot(vm.scene(), path, backend="matplotlib", outline=outline)
         out.append(path)
     return out
 
 
-def write_outputs(result: PipelineResult, out_dir: str | Path, *, snapshots: int = 3) -> dict:
-    """Write every output file into ``out_dir`` (created); returns the report."""
+def write_outputs(
+    result: PipelineResult,
+    out_dir: str | Path,
+    *,
+    snapshots: int = 3,
+    replay_output=None,
+    config=None,
+    command: str = "",
+    window_s: tuple[float | None, float | None] = (None, None),
+) -> dict:
+    """Write every output file into ``out_dir`` (created); returns the report.
+
+    Parameters
+    ----------
+    replay_output : ReplayOutput, optional
+        Filled while the pipeline ran: gets the results, is closed into ``replay.mcap``, and
+        gives ``report.html`` the detector signal and the flown path. Without it, the samples
+        are decoded here from the log.
+    config : Config, optional
+        The run's settings (report.html prints them); defaults when None.
+    command : str
+        The command line, for report.html.
+    window_s : (start, end)
+        The replayed window, seconds from the log start.
+    """
+    from groundstation.config import Config, to_toml
+    from groundstation.openformats.replay_output import ReplayOutput
+    from groundstation.pipeline.report import write_report_html
+
+    config = config or Config()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     report = build_report(result)
@@ -164,5 +203,33 @@ def write_outputs(result: PipelineResult, out_dir: str | Path, *, snapshots: int
         report["mesh"] = None
     write_observations_csv(result, out / "observations.csv")
     report["snapshots"] = [p.name for p in write_snapshots(result, out / "snapshots", snapshots)]
+    if replay_output is None:
+        replay_output = ReplayOutput(out / "replay.mcap", result.log_path, config,
+                                     _window_ns(result, window_s), command)  # fmt: skip
+        replay_output.samples_from_log(config.acquisition)
+    replay_output.results(result)
+    recording = replay_output.close()
+    report["replay_mcap"] = {"file": replay_output.path.name, **recording}
+    write_report_html(
+        out / "report.html",
+        result=result,
+        report=report,
+        signal=replay_output.signal(),
+        threshold_g=replay_output.translator.signal.threshold_g,
+        release_g=replay_output.translator.signal.release_g,
+        trajectory=replay_output.trajectory(),
+        settings_toml=to_toml(config),
+        command=command,
+        window_s=window_s,
+    )
+    report["report_html"] = "report.html"
     write_report(report, out / "report.json")
     return report
+
+
+def _window_ns(result: PipelineResult, window_s) -> tuple[int | None, int | None]:
+    start, end = window_s
+    return (
+        None if start is None else result.start_ns + int(round(start * 1e9)),
+        None if end is None else result.start_ns + int(round(end * 1e9)),
+    )

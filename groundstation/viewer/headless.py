@@ -3,9 +3,13 @@
 - PNG, backend ``"open3d"``: the same legacy Visualizer as the window, created offscreen (EGL
   when DISPLAY is unset, STACK.md), captured to a float buffer; matplotlib then overlays the
   caption, the std colour bar and the contact-state legend, keeping the framebuffer size.
-- PNG, backend ``"matplotlib"``: three orthographic projections (top x-y, front x-z, side y-z) of
-  the mesh (painter's algorithm, faces shaded by their normal), points, trajectory and pose.
-  Used when offscreen GL is not available (``"auto"`` falls back once and says so) or forced.
+- PNG, backend ``"matplotlib"`` (the default of ``groundstation view --headless`` and the only
+  one replay snapshots and ``report.html`` use, so live and replay pictures look alike): three
+  orthographic projections (top x-y, front x-z, side y-z) with metre axes, a grid and equal
+  scales, of the mesh (painter's algorithm, faces shaded by their normal), points, trajectory,
+  pose and, when given, the true structure outlined (``outline``: the ``objects`` of a
+  ``truth.json`` scene). Also used when offscreen GL is not available (``"auto"`` falls back
+  once and says so).
 - PLY: ``mesh_<fit>.ply`` (mesh with std vertex colours, via ``mapping.surface.write_ply``) and
   ``points_<fit>.ply`` (observations coloured by contact state).
 
@@ -16,9 +20,9 @@ from __future__ import annotations
 
 import sys
 import textwrap
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, BinaryIO, Literal
 
 import numpy as np
 
@@ -172,6 +176,37 @@ _VIEWS = (
 )
 
 
+#: Colour of the true structure's outline.
+OUTLINE_COLOR = "#d62728"
+
+
+def _draw_outline(ax: Any, objects: Sequence[Mapping[str, Any]], h: int, v: int) -> bool:
+    """Outline truth objects (box min/max; vertical cylinder centre (base)/radius/height;
+    sphere centre/radius) in the projection on axes (h, v); True when anything was drawn."""
+    from matplotlib.patches import Circle, Rectangle
+
+    style = {"fill": False, "edgecolor": OUTLINE_COLOR, "lw": 1.4, "ls": "--", "zorder": 6}
+    drawn = False
+    for o in objects:
+        kind = o.get("type")
+        if kind == "box":
+            lo, hi = np.asarray(o["min"], float), np.asarray(o["max"], float)
+            ax.add_patch(Rectangle((lo[h], lo[v]), hi[h] - lo[h], hi[v] - lo[v], **style))
+        elif kind == "cylinder":
+            c, r, ht = np.asarray(o["center"], float), float(o["radius"]), float(o["height"])
+            if (h, v) == (0, 1):
+                ax.add_patch(Circle((c[0], c[1]), r, **style))
+            else:
+                ax.add_patch(Rectangle((c[h] - r, c[2]), 2 * r, ht, **style))
+        elif kind == "sphere":
+            c, r = np.asarray(o["center"], float), float(o["radius"])
+            ax.add_patch(Circle((c[h], c[v]), r, **style))
+        else:
+            continue
+        drawn = True
+    return drawn
+
+
 def _draw_projection(ax: Any, scene: Scene, h: int, v: int, d: int, sign: float) -> None:
     from matplotlib.collections import PolyCollection
 
@@ -207,16 +242,44 @@ def _draw_projection(ax: Any, scene: Scene, h: int, v: int, d: int, sign: float)
         ax.plot(pts[0, h], pts[0, v], "ko", ms=4, zorder=6)
 
 
-def render_matplotlib(scene: Scene, path: str | Path, width: int = 960, height: int = 720) -> Path:
-    """Three orthographic projections of ``scene`` as one PNG of ``width`` x ``height`` pixels."""
-    fig = _figure(width, height)
-    rects = [(0.07, 0.54, 0.38, 0.36), (0.57, 0.54, 0.38, 0.36), (0.07, 0.07, 0.38, 0.36)]
+def _outline_bounds(objects: Sequence[Mapping[str, Any]]) -> tuple[np.ndarray, np.ndarray] | None:
+    pts = []
+    for o in objects:
+        if o.get("type") == "box":
+            pts += [o["min"], o["max"]]
+        elif o.get("type") in ("cylinder", "sphere"):
+            c, r = np.asarray(o["center"], float), float(o["radius"])
+            top = c + [0, 0, float(o.get("height", r))]
+            pts += [c - [r, r, 0 if "height" in o else r], top + [r, r, 0]]
+    if not pts:
+        return None
+    a = np.asarray(pts, dtype=float)
+    return a.min(axis=0), a.max(axis=0)
+
+
+def draw_views(
+    fig: Any,
+    scene: Scene,
+    rects: Sequence[tuple[float, float, float, float]],
+    outline: Sequence[Mapping[str, Any]] = (),
+) -> list[Any]:
+    """Draw the three projections of ``scene`` into ``fig`` at ``rects`` (figure fractions):
+    metre axes, grid, equal scales, everything drawn plus the truth ``outline``."""
     names = "xyz"
     b = scene.bounds()
+    ob = _outline_bounds(outline)
+    if b is not None and ob is not None:
+        b = (np.minimum(b[0], ob[0]), np.maximum(b[1], ob[1]))
+    elif b is None:
+        b = ob
+    axes = []
     for (title, h, v, d, sign), rect in zip(_VIEWS, rects, strict=True):
         ax = fig.add_axes(rect)
         ax.set_facecolor("white")
+        ax.grid(True, color="0.85", lw=0.5, zorder=0)
+        ax.set_axisbelow(True)
         _draw_projection(ax, scene, h, v, d, sign)
+        _draw_outline(ax, outline, h, v)
         ax.set_title(title, fontsize=8)
         ax.set_xlabel(f"{names[h]} (m)", fontsize=7)
         ax.set_ylabel(f"{names[v]} (m)", fontsize=7)
@@ -227,10 +290,32 @@ def render_matplotlib(scene: Scene, path: str | Path, width: int = 960, height: 
             ax.set_xlim(lo[h] - pad, hi[h] + pad)
             ax.set_ylim(lo[v] - pad, hi[v] + pad)
         ax.set_aspect("equal", adjustable="box")
-    fig.text(0.57, 0.36, "matplotlib projections\n(offscreen GL unavailable or off)", fontsize=7)
+        axes.append(ax)
+    return axes
+
+
+def render_matplotlib(
+    scene: Scene,
+    path: str | Path | BinaryIO,
+    width: int = 960,
+    height: int = 720,
+    outline: Sequence[Mapping[str, Any]] = (),
+) -> Path | BinaryIO:
+    """Three orthographic projections of ``scene`` as one PNG of ``width`` x ``height`` pixels
+    (a path or a binary file object), the true structure outlined when ``outline`` is given."""
+    from matplotlib.lines import Line2D
+
+    fig = _figure(width, height)
+    rects = [(0.07, 0.54, 0.38, 0.36), (0.57, 0.54, 0.38, 0.36), (0.07, 0.07, 0.38, 0.36)]
+    draw_views(fig, scene, rects, outline)
     _decorate(fig, scene, width, (0.88, 0.08, 0.015, 0.3), legend_anchor=(0.57, 0.08))
-    fig.savefig(str(path), dpi=_DPI)
-    return Path(path)
+    if outline:
+        fig.legend(
+            handles=[Line2D([], [], color=OUTLINE_COLOR, ls="--", label="true structure")],
+            loc="lower left", bbox_to_anchor=(0.57, 0.36), fontsize=7, framealpha=0.8,
+        )  # fmt: skip
+    fig.savefig(path if not isinstance(path, str) else str(path), dpi=_DPI, format="png")
+    return Path(path) if isinstance(path, str | Path) else path
 
 
 # -- Open3D offscreen ----------
@@ -271,6 +356,7 @@ def render_snapshot(
     height: int = 720,
     backend: Backend = "auto",
     renderer: Open3DSnapshotter | None = None,
+    outline: Sequence[Mapping[str, Any]] = (),
 ) -> str:
     """Render ``scene`` to a PNG (no bus needed; used by the offline replay).
 
@@ -286,6 +372,8 @@ def render_snapshot(
         ``"auto"`` tries Open3D offscreen and falls back to matplotlib.
     renderer : Open3DSnapshotter, optional
         Reuse an offscreen context (otherwise one is created and closed).
+    outline : sequence of dict, optional
+        True structure (``truth.json`` scene objects) outlined by the matplotlib views.
 
     Returns
     -------
@@ -307,7 +395,7 @@ def render_snapshot(
         except Exception:
             if backend == "open3d":
                 raise
-    render_matplotlib(scene, path, width, height)
+    render_matplotlib(scene, path, width, height, outline)
     return "matplotlib"
 
 

@@ -15,6 +15,10 @@ Conventions
   observation the robust model considers a false-positive contact (large ``u_i``).
 - A contact is *trusted* when the latest fit holds it with bit 0 clear, *flagged* when bit 0 is
   set, *pending* when no fit has included it yet.
+- Contacts are counted as the status line counts them (``runtime.status``): contact *events*
+  (``contact.event`` begins; without them, the distinct events of the contact points) and the
+  events the latest fit flags (its ``flagged_events``; without them, the events of its flagged
+  points). The caption gives that first, then the contact *points* by state.
 - Memory is bounded: the trajectory is a ring buffer (``trajectory_max_points``, and only the last
   ``trajectory_window_s`` of data time is drawn); observations beyond ``max_observations`` evict
   the oldest, and :attr:`ViewModel.observations_dropped` counts them.
@@ -33,7 +37,6 @@ import numpy as np
 
 from firmware_bridge.frames import quat_to_matrix
 from groundstation.errors import ConfigError, InputDataError
-from groundstation.mapping.surface import std_colors
 
 #: ``mapper.fit`` flag bit: the observation is a flagged false-positive contact.
 FLAG_FALSE_POSITIVE = 0x01
@@ -213,6 +216,9 @@ class ViewModel:
         self._fit_ids = np.zeros(0, dtype=np.int64)
         self._fit_flags = np.zeros(0, dtype=np.uint8)
         self._fit_u = np.zeros(0)
+        self._flagged_events: set[int] | None = None
+        self._events_begun: set[int] = set()
+        self._obs_event: dict[int, int] = {}  # contact observation id -> event id
         self.points_version = 0
         # poses: ring buffer of (t_ns, xyz)
         tcap = int(s.trajectory_max_points)
@@ -271,6 +277,8 @@ class ViewModel:
             raise ViewerInputError(
                 f"triangle indices span [{t.min()}, {t.max()}] but there are {v.shape[0]} vertices"
             )
+        from groundstation.mapping.surface import std_colors  # lazy: scipy/skimage are slow
+
         if self.settings.std_range is not None:
             colors, rng = std_colors(sd, self.settings.std_range)
         elif sd.size:
@@ -290,7 +298,14 @@ class ViewModel:
         self.meshes_received += 1
         return self.mesh
 
-    def ingest_fit(self, ids: np.ndarray, u: np.ndarray, flags: np.ndarray, fit_index: int) -> None:
+    def ingest_fit(
+        self,
+        ids: np.ndarray,
+        u: np.ndarray,
+        flags: np.ndarray,
+        fit_index: int,
+        flagged_events=None,
+    ) -> None:
         """Replace the per-observation fit results.
 
         Parameters
@@ -299,6 +314,8 @@ class ViewModel:
         u : (n,) float, ``u_i = beta~_i / alpha~_i`` (ALGORITHM.md; larger = less trusted)
         flags : (n,) uint8 bit fields (:data:`FLAG_FALSE_POSITIVE`)
         fit_index : int
+        flagged_events : iterable of int, optional
+            Contact event ids the fit flags (``mapper.fit`` payload).
         """
         ids = np.asarray(ids).reshape(-1)
         u = np.asarray(u, dtype=np.float64).reshape(-1)
@@ -314,10 +331,19 @@ class ViewModel:
         self._fit_u = u[order]
         self._fit_flags = flags[order].astype(np.uint8)
         self.fit_index = int(fit_index)
+        self._flagged_events = None if flagged_events is None else {int(e) for e in flagged_events}
         self.points_version += 1
 
-    def ingest_observation(self, obs_id: int, label: int, x_m: np.ndarray) -> None:
-        """Add one observation (DESIGN.md §3 labels: 0 contact, -1 internal, +1 external).
+    def ingest_event(self, event_id: int, state: str) -> None:
+        """A ``contact.event`` message (begins are counted as contacts)."""
+        if state == "begin":
+            self._events_begun.add(int(event_id))
+
+    def ingest_observation(
+        self, obs_id: int, label: int, x_m: np.ndarray, event_id: int | None = None
+    ) -> None:
+        """Add one observation (DESIGN.md §3 labels: 0 contact, -1 internal, +1 external);
+        ``event_id``: the contact event of a contact point.
 
         A repeated id replaces the earlier point. Beyond ``max_observations`` the oldest is
         evicted and counted in :attr:`observations_dropped`.
@@ -343,6 +369,8 @@ class ViewModel:
         self._obs_xyz[slot] = x
         self._obs_label[slot] = label
         self._obs_id[slot] = obs_id
+        if label == _LABEL_CONTACT and event_id is not None and int(event_id) >= 0:
+            self._obs_event[obs_id] = int(event_id)
         self.points_version += 1
 
     def ingest_pose(
@@ -400,9 +428,19 @@ class ViewModel:
                     stamp_ns=recv_ns or None,
                 )
             elif topic == "mapper.fit":
-                self.ingest_fit(arrays["ids"], arrays["u"], arrays["flags"], payload["fit_index"])
+                self.ingest_fit(
+                    arrays["ids"],
+                    arrays["u"],
+                    arrays["flags"],
+                    payload["fit_index"],
+                    payload.get("flagged_events"),
+                )
             elif topic == "observations":
-                self.ingest_observation(payload["id"], payload["label"], arrays["x_m"])
+                self.ingest_observation(
+                    payload["id"], payload["label"], arrays["x_m"], payload.get("event_id")
+                )
+            elif topic == "contact.event":
+                self.ingest_event(payload["id"], payload["state"])
             elif topic == "samples.pose":
                 t = payload.get("t_station_ns")
                 self.ingest_pose(
@@ -462,6 +500,17 @@ class ViewModel:
         """Observations flagged as false positives in the latest fit."""
         return int(np.count_nonzero(self._fit_flags & FLAG_FALSE_POSITIVE))
 
+    def event_counts(self) -> tuple[int, int | None]:
+        """(contact events, events the latest fit flags or None before a fit), counted as the
+        status line counts them (module docstring)."""
+        events = len(self._events_begun or set(self._obs_event.values()))
+        if self.fit_index is None:
+            return events, None
+        if self._flagged_events is not None:
+            return events, len(self._flagged_events)
+        bad = self._fit_ids[(self._fit_flags & FLAG_FALSE_POSITIVE) != 0].tolist()
+        return events, len({self._obs_event[i] for i in bad if i in self._obs_event})
+
     def scene(self, now_ns: int | None = None) -> Scene:
         """Draw data for the current state.
 
@@ -480,6 +529,8 @@ class ViewModel:
             "flagged": int(np.count_nonzero(state == FLAGGED)),
             "pending": int(np.count_nonzero(state == PENDING)),
             "fit_flagged": self.flagged_count,
+            "events": self.event_counts()[0],
+            "events_flagged": self.event_counts()[1],
             "meshes": self.meshes_received,
             "rejected": sum(self.rejected.values()),
         }
@@ -507,11 +558,14 @@ class ViewModel:
         obs = f"{counts['observations']} obs"
         if counts["observations_dropped"]:
             obs += f" (+{counts['observations_dropped']} older not kept)"
+        flagged = counts.get("events_flagged")
         parts = [
             f"fit {fit}",
+            f"contacts {counts.get('events', 0)}"
+            + ("" if flagged is None else f" ({flagged} flagged)"),
             obs,
-            f"contacts {counts['contacts']}: {counts['trusted']} trusted, "
-            f"{counts['fit_flagged']} flagged, {counts['pending']} pending",
+            f"contact points {counts['contacts']}: {counts['trusted']} trusted, "
+            f"{counts['flagged']} flagged, {counts['pending']} pending",
         ]
         m = self.mesh
         if m is None:

@@ -22,7 +22,7 @@ from firmware_bridge.natnet import (
     encode_server_info,
     parse_packet,
 )
-from firmware_bridge.pcapng import PcapngStats, read_pcapng_file
+from tests.support.pcapng import PcapngStats, read_pcapng_file
 
 pytestmark = pytest.mark.external
 

@@ -55,6 +55,7 @@ import time
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import zmq
 
@@ -62,6 +63,7 @@ from groundstation.acquisition import layout, segments
 from groundstation.acquisition.recorder import Recorder, RecordingError
 from groundstation.bus.envelope import EnvelopeError, pack_frames, unpack_frames, unpack_header
 from groundstation.config import Config, to_toml
+from groundstation.openformats.export import foxglove_hook
 from groundstation.runtime.session import (
     Session,
     add_session_arguments,
@@ -153,6 +155,7 @@ class RecorderProcess(Worker):
         standby: bool = True,
         segment_s: float = DEFAULT_SEGMENT_S,
         ring_s: float = DEFAULT_RING_S,
+        foxglove: Any = None,
     ) -> None:
         super().__init__(session, config, name=name, context=context)
         self.parent_death_signal = signal.SIGTERM  # close the segment when orphaned
@@ -178,12 +181,16 @@ class RecorderProcess(Worker):
         self._lock_fd: int | None = None
         self._promote = threading.Event()
         self._use_lock = standby
+        self._foxglove_make = foxglove
+        self.foxglove: Any = None  # the current segment's Foxglove writer (issue 15)
         self._meta = dict(
             station_version=_station_version(),
             created_by=created_by,
             config=to_toml(config),
             sources=list(sources),
             session=session.session_id,
+            # UTC minus the log-time (monotonic) clock: export tlog dates its records with it
+            extra={layout.KEY_UTC_OFFSET: str(time.time_ns() - time.monotonic_ns())},
         )
 
     # -- roles ---------------------------------------------------------------------------------
@@ -267,13 +274,16 @@ class RecorderProcess(Worker):
         self.segments_written += 1
         self._segment_t0 = None
         self.state = "recording"
+        # Foxglove channels beside ours (issue 15): groundstation.openformats.export
+        make = self._foxglove_make
+        self.foxglove = make(self.recorder) if make is not None else None
 
     def _failed(self, exc: RecordingError) -> None:
         self.state = "failed"
         self.error = exc
         if self.recorder is not None:
             self.recorder.close()
-        self.recorder = None
+        self.recorder = self.foxglove = None
         self.log("error", exc.message, exc.hint)
 
     def take(self, msg: Tapped) -> None:
@@ -313,6 +323,8 @@ class RecorderProcess(Worker):
                 rec.write(env, msg.topic, log_ns, channel_metadata=extra or None)
             else:
                 rec.write(pack_frames(msg.frames), msg.topic, log_ns, msg.header.source_ns)
+            if self.foxglove is not None:
+                self.foxglove.add(msg.envelope, log_ns)
         except RecordingError as exc:
             self.dropped += 1
             self._failed(exc)
@@ -332,11 +344,18 @@ class RecorderProcess(Worker):
     def _rotate(self) -> None:
         try:
             if self.recorder is not None:
+                self._finish_foxglove()
                 self.recorder.close()
         except RecordingError as exc:
             self._failed(exc)
             return
         self._open_segment()
+
+    def _finish_foxglove(self) -> None:
+        """Write the segment's last Foxglove messages before the segment closes."""
+        if self.foxglove is not None:
+            self.foxglove.finish()
+            self.foxglove = None
 
     def _remind(self, data_topic: bool) -> None:
         """Repeat the failure on ``log`` at the first dropped data message (its publishers are
@@ -387,6 +406,11 @@ class RecorderProcess(Worker):
             "takeover_written": self.takeover_written,
             "takeover_lost": self.takeover_lost,
         }
+        if self.foxglove is not None:  # translations written / messages it could not translate
+            topics["foxglove"] = {
+                "written": self.foxglove.written,
+                "bad": self.foxglove.translator.bad,
+            }
         return topics
 
     def status_text(self) -> str:
@@ -405,6 +429,7 @@ class RecorderProcess(Worker):
                 self.take(msg)  # what the sources sent before they stopped
             if self.recorder is not None:
                 try:
+                    self._finish_foxglove()
                     self.recorder.close(fsync=True)
                 except RecordingError as exc:
                     self._failed(exc)
@@ -438,16 +463,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             from groundstation.errors import ConfigError
 
             raise ConfigError("--segment-s and --ring-s must be > 0")
+        config = worker_config(args)
         return RecorderProcess(
             session_from_args(args),
             args.out,
-            worker_config(args),
+            config,
             name=args.name,
             sources=args.source,
             created_by=args.created_by,
             standby=not args.no_standby,
             segment_s=args.segment_s,
             ring_s=args.ring_s,
+            foxglove=foxglove_hook(config),
         )
 
     return worker_main(argv, _parser(), build)

@@ -26,7 +26,7 @@ from typing import Any, Protocol
 
 from groundstation.viewer.scene import ViewerInputError, ViewModel, ViewSettings
 
-VIEW_TOPICS = ("mesh", "mapper.fit", "observations", "samples.pose")
+VIEW_TOPICS = ("mesh", "mapper.fit", "observations", "samples.pose", "contact.event")
 
 
 class _Stop(Protocol):

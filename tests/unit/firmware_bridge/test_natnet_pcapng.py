@@ -6,7 +6,7 @@ import struct
 
 import pytest
 
-from firmware_bridge.pcapng import (
+from tests.support.pcapng import (
     EPB,
     IDB,
     SHB,

@@ -197,8 +197,8 @@ def test_versions_change_only_with_their_part():
 
 def test_caption_and_counts():
     sc = populated_model().scene(now_ns=2_000_000_000)
-    assert sc.caption.startswith("fit 3 | 80 obs")
-    assert "contacts 40: 25 trusted, 5 flagged, 10 pending" in sc.caption
+    assert sc.caption.startswith("fit 3 | contacts 0 (0 flagged) | 80 obs")
+    assert "contact points 40: 25 trusted, 5 flagged, 10 pending" in sc.caption
     assert "age 2.0 s" in sc.caption and "std 0-" in sc.caption
     assert "no mesh yet" in ViewModel().scene().caption
 
@@ -243,3 +243,40 @@ def test_scene_module_imports_without_open3d_or_zmq():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+def test_caption_counts_contacts_as_the_status_line_does():
+    """Events begun and the events the fit flags (issue 15): the same numbers that
+    ``runtime.status.StatusBoard`` prints as ``contacts N (F flagged)``, whatever the number of
+    contact points per event."""
+    import numpy as np
+
+    from groundstation.bus.envelope import Envelope, Header
+    from groundstation.runtime.status import StatusBoard
+
+    vm = ViewModel()
+    board = StatusBoard(0)
+    msgs = []
+    obs_id = 0
+    for ev in range(5):
+        msgs.append(("contact.event", {"id": ev, "state": "begin", "peak_g": 2.0}, {
+            "position_m": np.zeros(3), "normal": np.array([1.0, 0, 0])}))  # fmt: skip
+        for _ in range(3 + ev):  # a different number of points per event
+            msgs.append(("observations", {"id": obs_id, "label": 0, "event_id": ev},
+                         {"x_m": np.array([1.0, ev, 0.5]), "normal": np.zeros(3)}))  # fmt: skip
+            obs_id += 1
+        msgs.append(("contact.event", {"id": ev, "state": "end", "peak_g": 3.0}, {
+            "position_m": np.zeros(3), "normal": np.array([1.0, 0, 0])}))  # fmt: skip
+    ids = np.arange(obs_id)
+    flags = np.isin(ids, [0, 1, 2, 9]).astype(np.uint8)  # every point of event 0, one of event 2
+    msgs.append(("mapper.fit", {"fit_index": 0, "flagged_events": [0, 2]},
+                 {"ids": ids, "u": np.ones(obs_id), "flags": flags}))  # fmt: skip
+    for i, (topic, payload, arrays) in enumerate(msgs):
+        vm.ingest_message(topic, payload, arrays, source_ns=i)
+        board.ingest(Envelope(topic, Header(topic, 1, i, i, i), payload, arrays), i)
+    line = board.line(10**9, {})
+    assert "contacts 5 (2 flagged)" in line
+    assert vm.scene().caption.split(" | ")[1] == "contacts 5 (2 flagged)"
+    # without flagged_events in the fit, the events of its flagged points count
+    vm.ingest_fit(ids, np.ones(obs_id), flags, fit_index=1)
+    assert vm.scene().caption.split(" | ")[1] == "contacts 5 (2 flagged)"

@@ -55,7 +55,8 @@ def test_window_sink_steps_and_echoes_the_caption():
         for _ in range(3):
             assert sink.step(vm.scene())
         assert sink.frames == 3 and lines == [
-            "fit - | 0 obs | contacts 0: 0 trusted, 0 flagged, 0 pending | no mesh yet"
+            "fit - | contacts 0 | 0 obs | contact points 0: 0 trusted, 0 flagged, 0 pending | "
+            "no mesh yet"
         ]
         m = sphere_mesh()
         vm.ingest_mesh(m.vertices, m.faces, m.std, fit_index=2)

@@ -1,4 +1,7 @@
-"""A small pcapng reader (and writer, for tests) for UDP traffic.
+"""A small pcapng reader (and writer) for UDP traffic, used only by the tests.
+
+It lives under ``tests/`` (it was ``firmware_bridge/pcapng.py``): the station never reads
+captures; the contract test replays the real NatNet capture in ``external_data`` through it.
 
 Reads section header, interface description, enhanced and simple packet blocks in either
 byte order (pcapng spec, draft-ietf-opsawg-pcapng: SHB 0x0A0D0D0A with byte-order magic
