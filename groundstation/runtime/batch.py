@@ -151,7 +151,7 @@ def run_task(task: Task, out_root: str, snapshots: int = 3) -> dict[str, Any]:
             "event_u": event_u(result), "replay_wall_s": result.wall_s,
             "task_wall_s": time.perf_counter() - t0,
             "warnings": sorted({str(w.message) for w in caught})[:20],
-            "host": socket.gethostname(), "pid": os.getpid(),
+            "host": socket.gethostname(), "pid": os.getpid(), "worker": _worker_name(),
         }  # fmt: skip
         write_json_atomic(staging / DONE, marker)  # last file of the task
         if (final / DONE).is_file():  # a duplicate run finished first: keep its folder
@@ -166,6 +166,16 @@ def run_task(task: Task, out_root: str, snapshots: int = 3) -> dict[str, Any]:
         error = _error_text(exc)
         record_failure(out, task, error, traceback.format_exc())
         return {"status": "failed", "folder": task.folder, "error": error}
+
+
+def _worker_name() -> str | None:
+    """Name of the Dask worker running this task (None outside a worker)."""
+    try:
+        from distributed import get_worker
+
+        return str(get_worker().name)
+    except (ImportError, ValueError):
+        return None
 
 
 def read_record(out: Path, task: Task) -> dict[str, Any]:
