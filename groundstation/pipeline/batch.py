@@ -360,6 +360,18 @@ def pool(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     }
 
 
+def log_names(logs: Sequence[LogInput]) -> dict[str, str]:
+    """Path -> the log's name in the summary: its stem, or ``stem-<sha256[:8]>`` when two
+    different logs share a stem."""
+    by_stem: dict[str, set[str]] = {}
+    for log in logs:
+        by_stem.setdefault(log.name, set()).add(log.path)
+    return {
+        log.path: log.name if len(by_stem[log.name]) == 1 else f"{log.name}-{log.sha256[:8]}"
+        for log in logs
+    }
+
+
 def summarize(plan: Plan, records: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
     """The batch summary: pooled per variant, per log, and every failure.
 
@@ -371,6 +383,7 @@ def summarize(plan: Plan, records: Mapping[str, Mapping[str, Any]]) -> dict[str,
     """
     per_variant: dict[str, Any] = {}
     per_log: dict[str, dict[str, Any]] = {}
+    names = log_names([c.log for c in plan.cells])
     for v in plan.variants:
         cells = [c for c in plan.cells if c.variant == v.name]
         recs = [records.get(c.task.folder, {"status": "missing"}) for c in cells]
@@ -380,7 +393,7 @@ def summarize(plan: Plan, records: Mapping[str, Mapping[str, Any]]) -> dict[str,
         }
         for c, r in zip(cells, recs, strict=True):
             rep = r.get("report") or {}
-            per_log.setdefault(c.log.name, {})[v.name] = {
+            per_log.setdefault(names[c.log.path], {})[v.name] = {
                 "folder": c.task.folder,
                 "status": r.get("status", "missing"),
                 **{k: rep.get(k) for k in (*TRUTH_METRICS, "contacts", "refits")},

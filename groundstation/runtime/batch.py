@@ -233,11 +233,18 @@ class Cluster:
             if self.scheduler:
                 try:
                     self._client = Client(self.scheduler, timeout="20s")
-                except (OSError, TimeoutError) as exc:
+                except (OSError, TimeoutError, TypeError, ValueError) as exc:
+                    hint = (
+                        "a tls:// scheduler needs the client's certificates in the Dask "
+                        "configuration (distributed.comm.tls.ca-file, .client.cert, .client.key)"
+                        if self.scheduler.startswith("tls://")
+                        else "start one with 'dask scheduler' and 'dask worker ADDRESS', "
+                        "or leave --scheduler out for a local cluster"
+                    )
                     raise ConfigError(
-                        f"--scheduler {self.scheduler}: cannot connect ({exc})",
-                        hint="start one with 'dask scheduler' and 'dask worker ADDRESS', "
-                        "or leave --scheduler out for a local cluster",
+                        f"--scheduler {self.scheduler}: cannot connect ({type(exc).__name__}: "
+                        f"{exc})",
+                        hint=hint,
                     ) from None
             else:
                 self._cluster = LocalCluster(

@@ -13,6 +13,7 @@ from groundstation.pipeline.batch import (
     LogInput,
     Variant,
     config_hash,
+    log_names,
     metric_stats,
     plan_batch,
     pool,
@@ -156,3 +157,16 @@ def test_summary_lists_every_variant_log_and_failure():
     text = summary_markdown(s)
     assert "| chamfer_m | low |" in text and "truncated log" in text
     assert "| a | base | failed |" in text
+
+
+def test_logs_sharing_a_name_stay_apart_in_the_summary():
+    other = LogInput("/elsewhere/a.mcap", "f" * 64)
+    assert log_names([A, B, other, A]) == {
+        A.path: "a-aaaaaaaa",
+        other.path: "a-ffffffff",
+        B.path: "b",
+    }
+    plan = plan_batch([A, other], [], resolve)
+    s = summarize(plan, {})
+    assert set(s["logs"]) == {"a-aaaaaaaa", "a-ffffffff"}
+    assert all(r["default"]["status"] == "missing" for r in s["logs"].values())
