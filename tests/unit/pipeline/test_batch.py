@@ -170,3 +170,19 @@ def test_logs_sharing_a_name_stay_apart_in_the_summary():
     s = summarize(plan, {})
     assert set(s["logs"]) == {"a-aaaaaaaa", "a-ffffffff"}
     assert all(r["default"]["status"] == "missing" for r in s["logs"].values())
+
+
+def test_cli_rejects_bad_input_before_starting_a_cluster(tmp_path, capsys):
+    from pathlib import Path
+
+    from groundstation.cli import main
+
+    log = Path(__file__).resolve().parents[3] / "replay_logs" / "wall_slow_touch_gusts.mcap"
+    out = tmp_path / "out"
+    assert main(["batch", str(tmp_path / "missing.mcap"), "--out", str(out)]) == 2
+    assert "missing.mcap" in capsys.readouterr().err
+    assert main(["batch", str(log), "--out", str(out), "--variant", "x:mapper.nope=1"]) == 2
+    assert "mapper" in capsys.readouterr().err
+    assert main(["batch", str(log), "--out", str(out), "--workers", "0"]) == 2
+    assert "--workers" in capsys.readouterr().err
+    assert not out.exists()  # nothing was started or written
