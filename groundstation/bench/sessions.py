@@ -1,6 +1,6 @@
 """``groundstation bench sessions``: the production pipeline on many flights, over batch.
 
-The bench only builds a task list; ``groundstation batch`` (``pipeline.batch`` +
+The bench only builds a task list; ``groundstation batch`` (``pipeline.batch``,
 ``runtime.batch``) runs it on Dask, one task per (flight, variant), exactly as ``groundstation
 replay --map final`` would, and keeps every task's outputs. The flights:
 
@@ -16,11 +16,11 @@ A flight of engine E is replayed with the ``[vehicle]`` settings a user gives fo
 
 Summary (per variant and per group: each engine, all engines pooled, the bundled logs)
 --------------------------------------------------------------------------------------
-For every truth metric (``pipeline.batch.TRUTH_METRICS``) the mean, median and worst over the
+For every truth metric (``pipeline.pooling.TRUTH_METRICS``) the mean, median and worst over the
 gusty flights, the same over their controls, and the ratio of the means (gusty / control).
 Accuracy that comes from smoothing rather than from rejecting false contacts shows up as *no*
 gap to the control; a robust map is as good in gusty air as in calm air (ratio ~1 for errors).
-Event shares are pooled over flights (``pipeline.batch.pool``).
+Event shares are pooled over flights (``pipeline.pooling.pool``).
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ from pathlib import Path
 from typing import Any
 
 from groundstation.bench.detector import FlightSpec, flight_suite
-from groundstation.pipeline.batch import TRUTH_METRICS, Plan, Variant, fmt, pool, u_auc
+from groundstation.pipeline.batch import Plan, Variant
+from groundstation.pipeline.pooling import TRUTH_METRICS, fmt, pool, u_auc
 
 __all__ = ["BUNDLED", "ROOT", "Flight", "Variant", "control_of", "flights", "u_auc"]
 

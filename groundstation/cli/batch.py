@@ -8,7 +8,7 @@ replay LOG --out OUT/<task folder> [--map ...] --set ...`` runs and writes the s
 the folder is named ``<log>-<log sha256[:12]>-<settings hash[:12]>`` so a rerun skips finished
 tasks and an interrupted batch resumes. A failed task keeps its error in ``failed.json`` and the
 summary; the others go on. At the end ``OUT/summary.md``, ``summary.json`` and ``summary.png``
-pool the truth metrics per variant (``pipeline.batch``). Exit status 1 when a task failed.
+pool the truth metrics per variant (``pipeline.pooling``). Exit status 1 when a task failed.
 """
 
 from __future__ import annotations
@@ -65,8 +65,10 @@ def resolve_logs(paths: list[str]) -> list[Path]:
 def run_batch(args: argparse.Namespace) -> int:
     from groundstation.config import load_config
     from groundstation.errors import ConfigError
-    from groundstation.pipeline.batch import Variant, plan_batch, summarize, summary_markdown
-    from groundstation.runtime.batch import Cluster, execute, log_input, write_summary
+    from groundstation.pipeline.batch import Variant, plan_batch
+    from groundstation.pipeline.batch_outputs import write_summary
+    from groundstation.pipeline.pooling import summarize, summary_markdown
+    from groundstation.runtime.batch import Cluster, execute, log_input
 
     if args.snapshots < 0:
         raise ConfigError(f"--snapshots must be >= 0, got {args.snapshots}")

@@ -458,8 +458,10 @@ def add_sessions_arguments(parser: argparse.ArgumentParser) -> None:
 def run_sessions(args: argparse.Namespace) -> int:
     """Build the flight list, generate missing flights and run everything through batch."""
     from groundstation.config import load_config
-    from groundstation.pipeline.batch import Variant, plan_batch, summarize, summary_markdown
-    from groundstation.runtime.batch import Cluster, execute, log_input, run_all, write_summary
+    from groundstation.pipeline.batch import Variant, plan_batch
+    from groundstation.pipeline.batch_outputs import write_summary
+    from groundstation.pipeline.pooling import summarize, summary_markdown
+    from groundstation.runtime.batch import Cluster, execute, log_input, run_all
 
     variants = [Variant.parse(v) for v in args.variant]
     engines = [e.strip() for e in args.engines.split(",") if e.strip()]

@@ -1,21 +1,19 @@
-"""``groundstation batch``, the Dask shell: a cluster, task folders on disk, a progress bar.
+"""``groundstation batch``, the Dask shell: a cluster, task submission, a progress bar.
 
-The pure part (task keys, config hashing, pooling, markdown) is ``pipeline.batch``; this module
-only moves tasks to Dask distributed and results to and from files. It lives in the runtime
+The plan and the pooling are pure (``pipeline.batch``, ``pipeline.pooling``); what one task
+does on disk is ``pipeline.batch_outputs.run_task`` (the production replay,
+``pipeline.offline.run_offline`` + ``pipeline.outputs.write_outputs``, into its folder). This
+module only moves tasks to Dask distributed and reads the folders back. It lives in the runtime
 room because, like the session supervisor, it owns processes (a ``LocalCluster``'s workers) and
-their lifetime; the work itself is the production replay (``pipeline.offline.run_offline`` +
-``pipeline.outputs.write_outputs``), unchanged.
+their lifetime.
 
 - :class:`Cluster`: an in-process ``LocalCluster`` (workers = cores, one thread and one BLAS
   thread each, scheduler on loopback, no dashboard) or a client of an existing scheduler
-  (``tcp://HOST:PORT``), started only when there is work.
-- :func:`run_task` runs on a worker: replay into ``OUT/.<folder>.partial-<id>/``, write
-  ``done.json`` last (atomically), then rename the folder to ``OUT/<folder>/``. A task folder is
-  either complete or absent; an error leaves ``OUT/<folder>/failed.json`` (and is retried on the
-  next run). A worker killed mid-task leaves only a partial folder, removed by the next batch;
-  Dask reruns its task on another worker.
-- :func:`execute` skips finished folders, submits the rest, shows done / running / failed on
-  stderr (tqdm) and returns every task's record for the summary.
+  (``tcp://HOST:PORT``, ``tls://...``), started only when there is work.
+- :func:`execute` skips finished task folders, removes partial ones, submits the rest, shows
+  done / running / failed on stderr (tqdm) and returns every task's record for the summary. A
+  worker that dies mid-task is noticed by the scheduler, which reruns its task elsewhere; a task
+  that keeps killing workers ends as failed (``KilledWorker``), recorded in its folder.
 
 Logs and ``OUT`` must be reachable under the same paths from every worker (one machine, or a
 shared file system) and the workers must run the same groundstation install.
@@ -27,32 +25,17 @@ import contextlib
 import dataclasses
 import fcntl
 import hashlib
-import json
-import math
 import os
 import shutil
-import socket
 import sys
 import time
-import traceback
-import uuid
-import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from groundstation.errors import ConfigError, GroundstationError
-from groundstation.pipeline.batch import (
-    DONE,
-    FAILED,
-    TRUTH_METRICS,
-    LogInput,
-    Plan,
-    Task,
-    event_u,
-    replay_settings_text,
-    summary_markdown,
-)
+from groundstation.errors import ConfigError
+from groundstation.pipeline.batch import DONE, LogInput, Plan, Task
+from groundstation.pipeline.batch_outputs import error_text, read_record, record_failure, run_task
 
 #: Environment of local workers: one BLAS/OpenMP thread each (workers = cores).
 ONE_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -71,131 +54,6 @@ def log_input(path: str | Path, overrides: Sequence[str] = (), **labels: str) ->
     """A :class:`LogInput` for an existing file (absolute path, content hash)."""
     p = Path(path).resolve()
     return LogInput(str(p), file_sha256(p), tuple(overrides), tuple(sorted(labels.items())))
-
-
-def _clean(obj: Any) -> Any:
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_clean(v) for v in obj]
-    if hasattr(obj, "item") and callable(obj.item):  # numpy scalars
-        return _clean(obj.item())
-    return obj
-
-
-def write_json_atomic(path: Path, payload: Any) -> None:
-    """Write JSON (NaN as null) to ``path`` via a temporary file and ``os.replace``."""
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    with open(tmp, "w") as fh:
-        json.dump(_clean(payload), fh, indent=1, sort_keys=True)
-        fh.write("\n")
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-
-
-def _error_text(exc: BaseException) -> str:
-    text = f"{type(exc).__name__}: {exc.message if isinstance(exc, GroundstationError) else exc}"
-    if isinstance(exc, GroundstationError) and exc.hint:
-        text += f" (hint: {exc.hint})"
-    return text
-
-
-def record_failure(out: Path, task: Task, error: str, trace: str = "") -> None:
-    """``OUT/<folder>/failed.json`` with the error (a finished folder is left alone)."""
-    folder = out / task.folder
-    if (folder / DONE).is_file():
-        return
-    folder.mkdir(parents=True, exist_ok=True)
-    payload = {"key": task.key, "log": task.log, "error": error, "traceback": trace,
-               "host": socket.gethostname()}  # fmt: skip
-    write_json_atomic(folder / FAILED, payload)
-
-
-def run_task(task: Task, out_root: str, snapshots: int = 3) -> dict[str, Any]:
-    """Run one task on a worker: what ``groundstation replay LOG --out DIR`` runs.
-
-    Returns
-    -------
-    dict
-        ``{"status": "done" | "failed", "folder": ..., "error": ...}`` (small; the results are
-        in the folder).
-    """
-    from groundstation.errors import ConvergenceWarning
-    from groundstation.pipeline.offline import run_offline
-    from groundstation.pipeline.outputs import write_outputs
-
-    out = Path(out_root)
-    final = out / task.folder
-    if (final / DONE).is_file():
-        return {"status": "done", "folder": task.folder, "skipped": True}
-    t0 = time.perf_counter()
-    staging = out / f".{task.folder}.partial-{uuid.uuid4().hex[:8]}"
-    try:
-        staging.mkdir(parents=True)
-        settings = replay_settings_text(task.config, task.map_mode, task.checkpoints)
-        (staging / "settings.toml").write_text(settings)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", ConvergenceWarning)
-            result = run_offline(
-                task.log, task.config, map_mode=task.map_mode, checkpoints=task.checkpoints
-            )
-            write_outputs(result, staging, snapshots=snapshots)
-        marker = {
-            "key": task.key, "log": task.log, "log_sha256": task.log_sha256,
-            "config_hash": task.config_hash, "map": task.map_mode,
-            "checkpoints": task.checkpoints,
-            "refit_s": [f.timings.get("total_s", math.nan) for f in result.fits],
-            "event_u": event_u(result), "replay_wall_s": result.wall_s,
-            "task_wall_s": time.perf_counter() - t0,
-            "warnings": sorted({str(w.message) for w in caught})[:20],
-            "host": socket.gethostname(), "pid": os.getpid(), "worker": _worker_name(),
-        }  # fmt: skip
-        write_json_atomic(staging / DONE, marker)  # last file of the task
-        if (final / DONE).is_file():  # a duplicate run finished first: keep its folder
-            shutil.rmtree(staging, ignore_errors=True)
-        else:
-            if final.exists():
-                shutil.rmtree(final)  # an earlier failed attempt
-            os.rename(staging, final)
-        return {"status": "done", "folder": task.folder}
-    except Exception as exc:
-        shutil.rmtree(staging, ignore_errors=True)
-        error = _error_text(exc)
-        record_failure(out, task, error, traceback.format_exc())
-        return {"status": "failed", "folder": task.folder, "error": error}
-
-
-def _worker_name() -> str | None:
-    """Name of the Dask worker running this task (None outside a worker)."""
-    try:
-        from distributed import get_worker
-
-        return str(get_worker().name)
-    except (ImportError, ValueError):
-        return None
-
-
-def read_record(out: Path, task: Task) -> dict[str, Any]:
-    """The record of a task folder: status, report.json and done.json, or the error."""
-    folder = out / task.folder
-    if (folder / DONE).is_file():
-        try:
-            return {
-                "status": "done",
-                "done": json.loads((folder / DONE).read_text()),
-                "report": json.loads((folder / "report.json").read_text()),
-            }
-        except (OSError, ValueError) as exc:
-            return {"status": "failed", "error": f"unreadable results: {exc}"}
-    if (folder / FAILED).is_file():
-        try:
-            return {"status": "failed", "error": json.loads((folder / FAILED).read_text())["error"]}
-        except (OSError, ValueError, KeyError) as exc:
-            return {"status": "failed", "error": f"unreadable failed.json: {exc}"}
-    return {"status": "missing", "error": "not run"}
 
 
 class Cluster:
@@ -334,7 +192,7 @@ def run_all(
     out: list[tuple[Any, str | None]] = [(None, "not run")] * len(calls)
 
     def on_done(i: int, result: Any, exc: BaseException | None) -> bool:
-        out[i] = (None, _error_text(exc)) if exc is not None else (result, None)
+        out[i] = (None, error_text(exc)) if exc is not None else (result, None)
         return exc is not None
 
     drive(client, futures, desc, on_done, quiet)
@@ -373,7 +231,7 @@ def execute(
 
             def on_done(task: Task, result: Any, exc: BaseException | None) -> bool:
                 if exc is not None:  # e.g. KilledWorker: the task took down workers repeatedly
-                    record_failure(out, task, _error_text(exc))
+                    record_failure(out, task, error_text(exc))
                     return True
                 return result.get("status") != "done"
 
@@ -381,50 +239,3 @@ def execute(
         records = {t.folder: read_record(out, t) for t in tasks}
     failed = sum(r["status"] != "done" for r in records.values())
     return BatchRun(len(todo), len(tasks) - len(todo), failed, records, time.perf_counter() - t0)
-
-
-def write_summary(
-    summary: dict[str, Any], out: str | Path, *, markdown: str | None = None, title: str = ""
-) -> list[Path]:
-    """``summary.md``, ``summary.json`` and ``summary.png`` (one panel per truth metric, every
-    log's value per variant and the variant's mean) in ``out``."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    text = markdown if markdown is not None else summary_markdown(summary, title or "batch")
-    (out / "summary.md").write_text(text)
-    write_json_atomic(out / "summary.json", summary)
-    paths = [out / "summary.md", out / "summary.json"]
-    paths.append(metrics_chart(summary, out / "summary.png", title))
-    return paths
-
-
-def metrics_chart(summary: dict[str, Any], path: Path, title: str = "") -> Path:
-    """Strip chart of every truth metric: one column of points per variant, mean as a bar."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    keys = [*TRUTH_METRICS, "task_wall_s"]
-    names = list(summary["variants"])
-    ncol = 4
-    nrow = math.ceil(len(keys) / ncol)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(3.2 * ncol, 2.4 * nrow), squeeze=False)
-    for ax, key in zip(axes.flat, keys, strict=False):
-        for i, name in enumerate(names):
-            ys = [r[name].get(key) for r in summary["logs"].values() if name in r]
-            ys = [float(y) for y in ys if y is not None and math.isfinite(float(y))]
-            if ys:
-                ax.plot([i] * len(ys), ys, "o", alpha=0.5, ms=4)
-                ax.hlines(sum(ys) / len(ys), i - 0.3, i + 0.3, color="k")
-        ax.set_xlim(-0.6, len(names) - 0.4)
-        ax.set_title(key, fontsize=8)
-        ax.set_xticks(range(len(names)), names, fontsize=7, rotation=30)
-        ax.tick_params(axis="y", labelsize=7)
-    for ax in list(axes.flat)[len(keys) :]:
-        ax.axis("off")
-    fig.suptitle(title or "batch: per-log values (points) and mean (bar) per variant", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path

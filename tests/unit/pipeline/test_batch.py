@@ -8,14 +8,11 @@ import pytest
 
 from groundstation.config import load_config
 from groundstation.errors import ConfigError
-from groundstation.pipeline.batch import (
+from groundstation.pipeline.batch import LogInput, Variant, config_hash, plan_batch
+from groundstation.pipeline.pooling import (
     TRUTH_METRICS,
-    LogInput,
-    Variant,
-    config_hash,
     log_names,
     metric_stats,
-    plan_batch,
     pool,
     summarize,
     summary_markdown,
