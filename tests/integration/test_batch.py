@@ -196,6 +196,7 @@ def test_batch_on_a_dask_cli_cluster_survives_a_killed_worker(dask_cluster, tmp_
 
 
 @pytest.mark.soak
+@pytest.mark.timeout(3600)  # 6 tasks + 6 sequential replays: ~10 min on a loaded machine
 def test_batch_of_every_bundled_log_on_a_dask_cli_cluster(dask_cluster, tmp_path):
     logs = [LOGS / f"{n}.mcap" for n in ("wall_survey", "pillar_survey", "wall_slow_touch_gusts")]
     _run_on_cluster(dask_cluster, tmp_path, logs)
