@@ -471,7 +471,9 @@ def run_sessions(args: argparse.Namespace) -> int:
             f"--engines {args.engines!r}: use {' and/or '.join(detector_bench.ENGINES)}"
         )
     seeds = detector_bench.parse_seeds(args.seeds)
-    cache = Path(args.cache)
+    for v in variants or [Variant("default")]:
+        load_config(args.config, [*args.set, *v.overrides])  # a bad setting fails before any work
+    cache = Path(args.cache).resolve()  # workers of a remote cluster may run elsewhere
     out = Path(args.out)
     with Cluster(args.scheduler, args.jobs) as cluster:
         logs = []
