@@ -1,225 +1,207 @@
-"""``groundstation bench sessions``: the whole pipeline on many recorded sessions, per setting.
+"""``groundstation bench sessions``: the production pipeline on many flights, over batch.
 
-Every session is replayed through the in-process pipeline (``pipeline.offline``: the same
-detector stage and mapper as a live session) once per *variant* (a name and ``--set``
-overrides), and scored against the session's ground truth (``pipeline.scoring``). Results are
-pooled over sessions, so a setting is judged on many flights, not the one it was tuned on.
+The bench only builds a task list; ``groundstation batch`` (``pipeline.batch``,
+``runtime.batch``) runs it on Dask, one task per (flight, variant), exactly as ``groundstation
+replay --map final`` would, and keeps every task's outputs. The flights:
 
-The default suite is the three bundled ``replay_logs/`` plus eight SITL sessions on other scenes
-and seeds (:data:`SUITE`), generated once with ``groundstation sitl ... --speed max --record``
-into ``--cache`` and reused. ``--logs`` evaluates any recordings instead (truth optional).
+- the three bundled ``replay_logs/`` (simple physics, gusty air; no clean control);
+- for every engine and seed, the evaluation flights of ``bench detector``
+  (``bench.detector.flight_suite``: ``script:varied`` surveys of scenes around and away from the
+  mocap origin and contact-free flights, in gusty air), generated once into ``--cache``;
+- for each of those its **clean control** (:func:`control_of`): the same flight with the gust
+  options replaced by ``--gust-rate 0`` (same seed, no false contacts).
 
-Pooled metrics per variant
---------------------------
-``chamfer_mean`` / ``chamfer_max``
-    Touched-region Chamfer distance (m) of the final mesh, mean and worst over sessions.
-``chamfer_full_mean``
-    Whole-mesh Chamfer distance (m): also counts surface drawn where no touch was.
-``fp_precision`` / ``fp_recall``
-    Flagged false-contact events: correct flags / all flags, and correct flags / detected
-    gust events, pooled over sessions.
-``u_auc``
-    Threshold-free separation: probability that a detected gust event's median contact u
-    exceeds a detected touch event's (1 = perfect, 0.5 = chance).
-``detection_recall``
-    Truth touch events detected / truth touch events.
-``refit_s_median``
-    Median refit wall time over all refits of all sessions.
+A flight of engine E is replayed with the ``[vehicle]`` settings a user gives for that airframe
+(``bench.detector.VEHICLE[E]``) before ``--set`` and the variant's overrides.
+
+Summary (per variant and per group: each engine, all engines pooled, the bundled logs)
+--------------------------------------------------------------------------------------
+For every truth metric (``pipeline.pooling.TRUTH_METRICS``) the mean, median and worst over the
+gusty flights, the same over their controls, and the ratio of the means (gusty / control).
+Accuracy that comes from smoothing rather than from rejecting false contacts shows up as *no*
+gap to the control; a robust map is as good in gusty air as in calm air (ratio ~1 for errors).
+Event shares are pooled over flights (``pipeline.pooling.pool``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import subprocess
-import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
-import numpy as np
+from groundstation.bench.detector import FlightSpec, flight_suite
+from groundstation.pipeline.batch import Plan, Variant
+from groundstation.pipeline.pooling import TRUTH_METRICS, fmt, pool, u_auc
 
-from groundstation.errors import ConfigError, InputDataError
+__all__ = ["BUNDLED", "ROOT", "Flight", "Variant", "control_of", "flights", "u_auc"]
 
 ROOT = Path(__file__).resolve().parents[2]
 BUNDLED = ("wall_survey", "pillar_survey", "wall_slow_touch_gusts")
+#: Engine of the bundled logs (``replay_logs/regenerate.sh`` runs the simple SITL).
+BUNDLED_ENGINE = "simple"
 
 
 @dataclasses.dataclass(frozen=True)
-class SessionSpec:
-    """A SITL session: scene, scripted pilot, seed and gust rate (per minute)."""
+class Flight:
+    """A generated flight of the bench: its spec, ``gusty`` or ``control``, and the name of the
+    gusty flight it belongs to."""
 
-    scene: str
-    pilot: str
-    seed: int
-    gust_rate: float
-
-    @property
-    def name(self) -> str:
-        return f"{self.scene}_{self.pilot}_{self.seed}"
-
-    def sitl_args(self) -> list[str]:
-        return [
-            "sitl", "--scene", self.scene, "--pilot", f"script:{self.pilot}",
-            "--seed", str(self.seed), "--gust-rate", repr(self.gust_rate), "--speed", "max",
-        ]  # fmt: skip
+    spec: FlightSpec
+    role: str
+    pair: str
 
 
-#: Generated sessions of the default suite (seeds and scenes other than the bundled logs').
-SUITE = (
-    SessionSpec("wall", "survey", 11, 4),
-    SessionSpec("pillar", "survey", 12, 4),
-    SessionSpec("pier", "survey", 13, 4),
-    SessionSpec("paper", "survey", 14, 4),
-    SessionSpec("wall", "slow_touch", 15, 8),
-    SessionSpec("pier", "survey", 16, 6),
-    SessionSpec("paper", "survey", 17, 6),
-    SessionSpec("pillar", "slow_touch", 18, 8),
-)
+def control_of(spec: FlightSpec) -> FlightSpec:
+    """The same flight in calm air: every ``--gust-*`` option dropped, ``--gust-rate 0`` added."""
+    args: list[str] = []
+    skip = False
+    for a in spec.sitl_args:
+        if skip:
+            skip = False
+            if not a.startswith("--"):
+                continue
+        if a.startswith("--gust"):
+            skip = "=" not in a
+            continue
+        args.append(a)
+    return dataclasses.replace(spec, sitl_args=(*args, "--gust-rate", "0"))
 
 
-@dataclasses.dataclass(frozen=True)
-class Variant:
-    """A named list of ``--set`` overrides."""
-
-    name: str
-    overrides: tuple[str, ...] = ()
-
-    @classmethod
-    def parse(cls, text: str) -> Variant:
-        """``NAME`` or ``NAME:key=value,key=value``."""
-        name, _, rest = text.partition(":")
-        if not name:
-            raise ConfigError(f"--variant {text!r}: give a name, e.g. 'floor:mapping.x=1'")
-        items = tuple(s.strip() for s in rest.split(",") if s.strip())
-        for item in items:
-            if "=" not in item:
-                raise ConfigError(f"--variant {text!r}: {item!r} is not key=value")
-        return cls(name, items)
+def flights(engines: Sequence[str], seeds: Sequence[int]) -> list[Flight]:
+    """Every evaluation flight of ``engines`` x ``seeds`` followed by its clean control."""
+    out = []
+    for spec in flight_suite(engines, seeds):
+        out.append(Flight(spec, "gusty", spec.name))
+        out.append(Flight(control_of(spec), "control", spec.name))
+    return out
 
 
-def generate(spec: SessionSpec, cache: Path) -> Path:
-    """The recording of ``spec`` in ``cache`` (generated by the SITL when missing)."""
-    cache.mkdir(parents=True, exist_ok=True)
-    path = cache / f"{spec.name}.mcap"
-    if path.is_file():
-        return path
-    tmp = path.with_suffix(".partial.mcap")
-    cmd = [sys.executable, "-m", "groundstation.cli", *spec.sitl_args(), "--record", str(tmp)]
-    cmd.append("--force")  # the .partial file of an interrupted run is scratch
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, check=False)
-    if done.returncode != 0:
-        raise InputDataError(f"SITL session {spec.name} failed: {done.stderr.strip()[-400:]}")
-    tmp.replace(path)
-    return path
+def groups(plan: Plan, variant: str) -> dict[str, dict[str, list[str]]]:
+    """Task folders per group and role for ``variant``: ``{group: {"gusty": [...], "control":
+    [...]}}`` with a group per engine, ``pooled`` (every generated flight) and ``bundled``."""
+    out: dict[str, dict[str, list[str]]] = {}
+    for c in plan.cells:
+        if c.variant != variant:
+            continue
+        role, engine = c.log.label("role"), c.log.label("engine")
+        if role == "bundled" or role == "log":
+            out.setdefault(role, {"gusty": [], "control": []})["gusty"].append(c.task.folder)
+        elif role in ("gusty", "control"):
+            for g in (engine, "pooled"):
+                out.setdefault(g, {"gusty": [], "control": []})[role].append(c.task.folder)
+    order = [g for g in out if g not in ("pooled", "bundled", "log")]
+    order += [g for g in ("pooled", "bundled", "log") if g in out]
+    return {g: out[g] for g in order}
 
 
-def evaluate_log(log: str, overrides: Sequence[str]) -> dict:
-    """Replay ``log`` in process with ``overrides``; the report plus per-event (kind, u)."""
-    import warnings
-
-    from groundstation.config import load_config
-    from groundstation.errors import ConvergenceWarning
-    from groundstation.pipeline.offline import run_offline
-    from groundstation.pipeline.outputs import build_report, detected_events
-    from groundstation.pipeline.scoring import match_events
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        res = run_offline(log, load_config(None, list(overrides)))
-    report = build_report(res)
-    events: list[tuple[str, float]] = []
-    fit = res.final
-    if fit is not None and res.truth:
-        u = dict(zip(fit.ids.tolist(), fit.u.tolist(), strict=True))
-        by_event: dict[int, list[float]] = {}
-        for o in res.observations:
-            if o.label == 0 and o.id in u:
-                by_event.setdefault(o.event_id, []).append(u[o.id])
-        for eid, m in match_events(detected_events(res), res.truth).items():
-            if m is not None and eid in by_event:
-                events.append((m[1], float(np.median(by_event[eid]))))
-    report["event_u"] = events
-    report["refit_s"] = [f.timings.get("total_s", math.nan) for f in res.fits]
-    return report
-
-
-def u_auc(gust_u: Sequence[float], touch_u: Sequence[float]) -> float:
-    """P(u of a gust event > u of a touch event), ties counted half; NaN if either is empty."""
-    g, t = np.asarray(gust_u, float), np.asarray(touch_u, float)
-    if g.size == 0 or t.size == 0:
+def ratio(a: float, b: float) -> float:
+    """a / b, NaN when either is missing or b is 0."""
+    if a is None or b is None or not (math.isfinite(a) and math.isfinite(b)) or b == 0:
         return math.nan
-    greater = (g[:, None] > t[None, :]).mean()
-    ties = (g[:, None] == t[None, :]).mean()
-    return float(greater + 0.5 * ties)
+    return a / b
 
 
-def pool(reports: Sequence[dict]) -> dict:
-    """Pooled metrics of one variant (module docstring)."""
-    scored = [r for r in reports if "chamfer_m" in r]
+def compare(plan: Plan, records: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """Per variant and group: pooled gusty flights, pooled controls and the ratio of means."""
+    out: dict[str, Any] = {}
+    for v in plan.variants:
+        out[v.name] = {}
+        for g, roles in groups(plan, v.name).items():
+            gusty = pool([records.get(f, {"status": "missing"}) for f in roles["gusty"]])
+            control = pool([records.get(f, {"status": "missing"}) for f in roles["control"]])
+            out[v.name][g] = {
+                "gusty": gusty,
+                "control": control if roles["control"] else None,
+                "ratio": {
+                    k: ratio(gusty["metrics"][k]["mean"], control["metrics"][k]["mean"])
+                    for k in TRUTH_METRICS
+                }
+                if roles["control"]
+                else None,
+            }
+    return out
 
-    def values(key: str) -> np.ndarray:
-        return np.array([r.get(key) for r in scored if r.get(key) is not None], dtype=float)
 
-    flagged = sum(int(r.get("events_flagged", 0)) for r in scored)
-    false = sum(int(r.get("events_false", 0)) for r in scored)
-    correct = sum(int(r.get("events_flagged_false", 0)) for r in scored)
-    gust_u = [u for r in scored for k, u in r["event_u"] if k == "gust"]
-    touch_u = [u for r in scored for k, u in r["event_u"] if k != "gust"]
-    touches = sum(int(r.get("truth_touches", 0)) for r in scored)
-    found = sum(
-        round(r["detection_recall"] * r.get("truth_touches", 0))
-        for r in scored
-        if r.get("detection_recall") is not None and math.isfinite(r["detection_recall"])
+def _triple(s: Mapping[str, Any]) -> str:
+    return "-" if not s["n"] else f"{fmt(s['mean'])} / {fmt(s['median'])} / {fmt(s['worst'])}"
+
+
+def markdown(comparison: Mapping[str, Any], overrides: Mapping[str, Sequence[str]]) -> str:
+    """The bench's own section of ``summary.md``: per variant and group, gusty vs control."""
+    lines = ["# bench sessions", ""]
+    lines.append(
+        "Per group: gusty flights (mean / median / worst over flights), their clean controls "
+        "(the same flights with `--gust-rate 0`), and the ratio of the means (gusty / control). "
+        "No gap to the control means the accuracy does not depend on rejecting false contacts."
     )
-    refits = [t for r in reports for t in r["refit_s"] if math.isfinite(t)]
-    ch = values("chamfer_m")
-    return {
-        "sessions": len(reports),
-        "chamfer_mean": float(np.nanmean(ch)) if ch.size else math.nan,
-        "chamfer_max": float(np.nanmax(ch)) if ch.size else math.nan,
-        "chamfer_full_mean": float(np.nanmean(values("chamfer_full_m"))) if scored else math.nan,
-        "fp_flagged": flagged,
-        "fp_correct": correct,
-        "fp_false_events": false,
-        "fp_precision": correct / flagged if flagged else math.nan,
-        "fp_recall": correct / false if false else math.nan,
-        "u_auc": u_auc(gust_u, touch_u),
-        "detection_recall": found / touches if touches else math.nan,
-        "refit_s_median": float(np.median(refits)) if refits else math.nan,
-        "refits": len(refits),
-    }
-
-
-def _fmt(v, spec=".3f") -> str:
-    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
-
-
-def summary_markdown(results: dict[str, dict]) -> str:
-    """Pooled table (one row per variant) and the per-session table of every variant."""
-    lines = [
-        "| variant | sessions | Chamfer mean (m) | Chamfer max (m) | full Chamfer (m) "
-        "| flags correct/all | gusts flagged | u-AUC | touches detected | refit median (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for name, res in results.items():
-        p = res["pooled"]
-        lines.append(
-            f"| {name} | {p['sessions']} | {_fmt(p['chamfer_mean'])} | {_fmt(p['chamfer_max'])} "
-            f"| {_fmt(p['chamfer_full_mean'])} | {p['fp_correct']}/{p['fp_flagged']} "
-            f"| {p['fp_correct']}/{p['fp_false_events']} | {_fmt(p['u_auc'])} "
-            f"| {_fmt(p['detection_recall'], '.2f')} | {_fmt(p['refit_s_median'], '.2f')} |"
-        )
-    for name, res in results.items():
-        lines += ["", f"### {name} {' '.join(res['overrides']) or '(defaults)'}", "",
-                  "| session | Chamfer (m) | full (m) | gust events | flagged | correct "
-                  "| touches detected | refits | refit median (s) |",
-                  "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
-        for log, r in res["sessions"].items():
-            fl, ok = r.get("events_flagged", 0), r.get("events_flagged_false", 0)
-            lines.append(
-                f"| {log} | {_fmt(r.get('chamfer_m'))} | {_fmt(r.get('chamfer_full_m'))} "
-                f"| {r.get('events_false', '-')} | {fl} | {ok} "
-                f"| {_fmt(r.get('detection_recall'), '.2f')} | {r['refits']} "
-                f"| {_fmt(r['refit_s_median'], '.2f')} |"
-            )
+    for name, per_group in comparison.items():
+        lines += ["", f"## variant {name}: {' '.join(overrides.get(name, ())) or '(defaults)'}"]
+        for g, c in per_group.items():
+            gp, cp = c["gusty"], c["control"]
+            head = f"{gp['done']}/{gp['tasks']} flights"
+            if cp is not None:
+                head += f", controls {cp['done']}/{cp['tasks']}"
+            lines += ["", f"### {g} ({head})", ""]
+            if cp is None:
+                lines += ["| metric | mean / median / worst |", "|---|---|"]
+            else:
+                lines += ["| metric | gusty | control | ratio |", "|---|---|---|---|"]
+            for k in TRUTH_METRICS:
+                row = f"| {k} | {_triple(gp['metrics'][k])} |"
+                if cp is not None:
+                    row += f" {_triple(cp['metrics'][k])} | {fmt(c['ratio'][k], '.2f')} |"
+                lines.append(row)
+            extra = {
+                "events: gusts flagged": lambda p: _share(p, "gust_events_flagged"),
+                "events: touches flagged": lambda p: _share(p, "touch_events_flagged"),
+                "events: flag precision": lambda p: _share(p, "fp_precision"),
+                "events: touches detected": lambda p: _share(p, "detection_recall"),
+                "u-AUC gust vs touch": lambda p: fmt(p["u_auc"], ".2f"),
+                "refit median (s)": lambda p: fmt(p["refit_s_median"], ".2f"),
+                "task wall median (s)": lambda p: fmt(p["task_wall_s"]["median"], ".1f"),
+            }
+            for label, f in extra.items():
+                row = f"| {label} | {f(gp)} |"
+                if cp is not None:
+                    row += f" {f(cp)} | |"
+                lines.append(row)
     return "\n".join(lines) + "\n"
+
+
+def _share(p: Mapping[str, Any], key: str) -> str:
+    s = p["shares"][key]
+    return f"{fmt(s['share'], '.2f')} ({fmt(s['num'], '.0f')}/{fmt(s['den'], '.0f')})"
+
+
+def control_chart(comparison: Mapping[str, Any], path: Path) -> Path:
+    """Bars of every error metric's mean, gusty vs control, per group (one row per variant)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    keys = [k for k, b in TRUTH_METRICS.items() if b == "low"]
+    names = list(comparison)
+    fig, axes = plt.subplots(
+        len(names), len(keys), figsize=(2.4 * len(keys), 2.6 * len(names)), squeeze=False
+    )
+    for row, name in zip(axes, names, strict=True):
+        per_group = {g: c for g, c in comparison[name].items() if c["control"] is not None}
+        x = np.arange(len(per_group))
+        for ax, k in zip(row, keys, strict=True):
+            gusty = [c["gusty"]["metrics"][k]["mean"] for c in per_group.values()]
+            calm = [c["control"]["metrics"][k]["mean"] for c in per_group.values()]
+            ax.bar(x - 0.2, np.nan_to_num(gusty), 0.4, label="gusty")
+            ax.bar(x + 0.2, np.nan_to_num(calm), 0.4, label="control")
+            ax.set_xticks(x, list(per_group), fontsize=7)
+            ax.set_title(f"{name}: {k}", fontsize=7)
+            ax.tick_params(axis="y", labelsize=7)
+        row[0].legend(fontsize=7)
+    fig.suptitle("bench sessions: mean per group, gusty flights vs clean controls", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path

@@ -1,7 +1,7 @@
 """The ``groundstation`` command: the CLI room.
 
 Every command's options and entry live in this package, one module per command family
-(``live``, ``record``, ``replay``, ``view``, ``sitl``, ``import_export``, ``config``,
+(``live``, ``record``, ``replay``, ``batch``, ``view``, ``sitl``, ``import_export``, ``config``,
 ``calibrate``, ``bench``), and :data:`COMMANDS` is the one table of them. A command's module is
 imported only when it runs, so ``groundstation --help`` is quick and a broken optional dependency
 of one command does not break the others. Process entry points of a session are not commands:
@@ -44,6 +44,11 @@ COMMANDS: dict[tuple[str, ...], Command] = {
         "replay",
         "replay",
         "run the mapping pipeline on a recording: mesh, per-observation table, report",
+    ),
+    ("batch",): Command(
+        "batch",
+        "batch",
+        "replay many logs x setting variants as tasks on Dask (local or remote), pooled summary",
     ),
     ("view",): Command(
         "view",

@@ -14,7 +14,6 @@ import math
 import sys
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from groundstation.bench import detector as detector_bench
@@ -412,76 +411,118 @@ def add_sessions_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE", help="applies to all variants"
     )
-    parser.add_argument("--cache", default="results/sessions/logs", help="generated sessions")
-    parser.add_argument("--out", default="results/sessions", help="summary.md and summary.json")
-    parser.add_argument("--jobs", type=int, default=2, help="sessions replayed in parallel")
+    parser.add_argument("--config", default=None, help="TOML configuration (base of every variant)")
+    parser.add_argument("--cache", default="results/sessions/logs", help="generated flights")
+    parser.add_argument(
+        "--out", default="results/sessions", help="summary.md/.json/.png and tasks/ (one per task)"
+    )
+    parser.add_argument(
+        "--jobs", type=int, default=None, help="local Dask workers (default: cores)"
+    )
+    parser.add_argument(
+        "--engines", default="simple,mujoco", help="SITL physics engines of the generated flights"
+    )
+    parser.add_argument(
+        "--seeds", default="100-102", help="seeds of the generated flights, e.g. 100-102"
+    )
+    parser.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="existing Dask scheduler, e.g. tcp://10.0.0.5:8786 (default: a local cluster)",
+    )
+    parser.add_argument(
+        "--map",
+        choices=("live", "final"),
+        default="final",
+        help="replay --map of every task (default final: the bench judges the final map)",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def run_sessions(args: argparse.Namespace) -> int:
+    """Build the flight list, generate missing flights and run everything through batch."""
     from groundstation.config import load_config
+    from groundstation.pipeline.batch import Variant, plan_batch
+    from groundstation.pipeline.batch_outputs import write_summary
+    from groundstation.pipeline.pooling import summarize, summary_markdown
+    from groundstation.runtime.batch import Cluster, execute, log_input, run_all
 
-    variants = [sessions_bench.Variant.parse(v) for v in args.variant] or [
-        sessions_bench.Variant("default")
-    ]
-    if len({v.name for v in variants}) != len(variants):
-        raise ConfigError("--variant names must be unique")
-    for v in variants:
-        load_config(None, [*args.set, *v.overrides])  # fail before any work
-    if args.logs:
-        logs = [str(Path(p)) for p in args.logs]
-        missing = [p for p in logs if not Path(p).is_file()]
-        if missing:
-            raise InputDataError(f"recordings not found: {', '.join(missing)}")
-    else:
-        logs = [
-            str(sessions_bench.ROOT / "replay_logs" / f"{n}.mcap") for n in sessions_bench.BUNDLED
-        ]
-        if not args.quick:
-            for spec in sessions_bench.SUITE:
-                print(f"bench sessions: session {spec.name}", file=sys.stderr, flush=True)
-                logs.append(str(sessions_bench.generate(spec, Path(args.cache))))
-    jobs = max(1, int(args.jobs))
-    results: dict[str, dict] = {}
-    for v in variants:
-        overrides = [*args.set, *v.overrides]
-        print(f"bench sessions: variant {v.name} on {len(logs)} sessions", file=sys.stderr)
-        with ProcessPoolExecutor(jobs) as ex:
-            reports = list(ex.map(sessions_bench.evaluate_log, logs, [overrides] * len(logs)))
-        results[v.name] = {
-            "overrides": overrides,
-            "pooled": sessions_bench.pool(reports),
-            "sessions": {
-                Path(lg).stem: {
-                    k: r.get(k)
-                    for k in (
-                        "chamfer_m",
-                        "chamfer_full_m",
-                        "shape_error_m",
-                        "events_false",
-                        "events_flagged",
-                        "events_flagged_false",
-                        "fp_precision",
-                        "fp_recall",
-                        "detection_recall",
-                        "refits",
-                        "refit_s_median",
-                        "contacts",
-                        "observations",
-                    )
-                }
-                for lg, r in zip(logs, reports, strict=True)
-            },  # fmt: skip
-        }
+    variants = [Variant.parse(v) for v in args.variant]
+    engines = [e.strip() for e in args.engines.split(",") if e.strip()]
+    bad = [e for e in engines if e not in detector_bench.ENGINES]
+    if bad or not engines:
+        raise ConfigError(
+            f"--engines {args.engines!r}: use {' and/or '.join(detector_bench.ENGINES)}"
+        )
+    seeds = detector_bench.parse_seeds(args.seeds)
+    for v in variants or [Variant("default")]:
+        load_config(args.config, [*args.set, *v.overrides])  # a bad setting fails before any work
+    cache = Path(args.cache).resolve()  # workers of a remote cluster may run elsewhere
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    text = sessions_bench.summary_markdown(results)
-    (out / "summary.md").write_text(text)
-    from groundstation.pipeline.outputs import _clean
-
-    (out / "summary.json").write_text(json.dumps(_clean(results), indent=1) + "\n")
+    with Cluster(args.scheduler, args.jobs) as cluster:
+        logs = []
+        if args.logs:
+            paths = [Path(p) for p in args.logs]
+            missing = [str(p) for p in paths if not p.is_file()]
+            if missing:
+                raise InputDataError(f"recordings not found: {', '.join(missing)}")
+            logs = [log_input(p, role="log") for p in paths]
+        else:
+            vehicle = detector_bench.VEHICLE[sessions_bench.BUNDLED_ENGINE]
+            for n in sessions_bench.BUNDLED:
+                path = sessions_bench.ROOT / "replay_logs" / f"{n}.mcap"
+                logs.append(log_input(path, vehicle, engine="simple", role="bundled", pair=n))
+            flights = [] if args.quick else sessions_bench.flights(engines, seeds)
+            todo = [f for f in flights if not (cache / f"{f.spec.name}.mcap").is_file()]
+            if todo:
+                print(
+                    f"bench sessions: generating {len(todo)} flights on {cluster.description}",
+                    file=sys.stderr,
+                )
+            made = run_all(
+                cluster, detector_bench.generate, [(f.spec, cache) for f in todo], "flights",
+                args.quiet,
+            )  # fmt: skip
+            for f, (_, err) in zip(todo, made, strict=True):
+                if err:
+                    print(f"bench sessions: flight {f.spec.name} FAILED: {err}", file=sys.stderr)
+            for f in flights:
+                path = cache / f"{f.spec.name}.mcap"
+                if path.is_file():
+                    logs.append(
+                        log_input(path, detector_bench.VEHICLE[f.spec.engine],
+                                  engine=f.spec.engine, role=f.role, pair=f.pair)
+                    )  # fmt: skip
+        plan = plan_batch(
+            logs, variants, lambda ov: load_config(args.config, ov),
+            base_overrides=args.set, map_mode=args.map,
+        )  # fmt: skip
+        print(
+            f"bench sessions: {len(logs)} logs x {len(plan.variants)} variants = "
+            f"{len(plan.tasks)} tasks on {cluster.description}",
+            file=sys.stderr,
+        )
+        run = execute(plan, out / "tasks", cluster, snapshots=1, quiet=args.quiet)
+    summary = summarize(plan, run.records)
+    comparison = sessions_bench.compare(plan, run.records)
+    summary["groups"] = comparison
+    summary["batch"] = {
+        "ran": run.ran, "skipped": run.skipped, "failed": run.failed, "wall_s": run.wall_s,
+        "cluster": cluster.description, "map": args.map, "engines": engines, "seeds": seeds,
+    }  # fmt: skip
+    overrides = {v.name: [*args.set, *v.overrides] for v in plan.variants}
+    text = sessions_bench.markdown(comparison, overrides)
+    text += "\n" + summary_markdown(summary, "All tasks (groundstation batch summary)")
+    write_summary(summary, out, markdown=text, title="bench sessions")
+    sessions_bench.control_chart(comparison, out / "control.png")
     print(text)
-    print(f"bench sessions: wrote {out / 'summary.md'} and summary.json", file=sys.stderr)
-    return 0
+    print(
+        f"bench sessions: {run.ran} tasks run, {run.skipped} finished earlier, {run.failed} "
+        f"failed; wrote {out / 'summary.md'}, summary.json, summary.png, control.png",
+        file=sys.stderr,
+    )
+    return 1 if run.failed else 0
 
 
 # ------------------------------ bench speed

@@ -1,4 +1,4 @@
-"""bench sessions: variants, pooled scores and the separation metric (pure parts)."""
+"""bench sessions: the task list (flights and their clean controls), groups and the comparison."""
 
 from __future__ import annotations
 
@@ -6,55 +6,75 @@ import math
 
 import pytest
 
-from groundstation.bench.sessions import BUNDLED, SUITE, Variant, pool, summary_markdown, u_auc
-from groundstation.errors import ConfigError
+from groundstation.bench.detector import GUSTS, FlightSpec, flight_suite
+from groundstation.bench.sessions import compare, control_of, flights, groups, markdown, ratio
+from groundstation.config import load_config
+from groundstation.pipeline.batch import LogInput, Variant, plan_batch
 
 
-def test_variant_parsing():
-    assert Variant.parse("default") == Variant("default", ())
-    v = Variant.parse("floor:mapping.lengthscale_min=0.3, contact.external_spacing_m=0")
-    assert v.name == "floor"
-    assert v.overrides == ("mapping.lengthscale_min=0.3", "contact.external_spacing_m=0")
-    with pytest.raises(ConfigError, match="key=value"):
-        Variant.parse("x:mapping.lengthscale_min")
-    with pytest.raises(ConfigError, match="name"):
-        Variant.parse(":a=1")
+def test_control_is_the_same_flight_without_gusts():
+    spec = FlightSpec("mujoco", "pier", "script:varied", 101, (*GUSTS, "--duration", "60"))
+    calm = control_of(spec)
+    assert (calm.engine, calm.scene, calm.pilot, calm.seed) == ("mujoco", "pier", "script:varied",
+                                                                101)  # fmt: skip
+    assert not [a for a in calm.sitl_args if a.startswith("--gust") and a != "--gust-rate"]
+    assert calm.sitl_args == ("--duration", "60", "--gust-rate", "0")
+    argv = calm.argv()
+    assert argv[argv.index("--gust-rate") + 1] == "0" and "--seed" in argv
+    assert calm.name != spec.name  # cached separately
+    assert control_of(FlightSpec("simple", "wall", "script:varied", 1, ("--gust-rate=8",))) \
+        .sitl_args == ("--gust-rate", "0")  # fmt: skip
 
 
-def test_u_auc_is_the_probability_a_gust_outranks_a_touch():
-    assert u_auc([0.5, 0.6], [0.0, 0.1]) == 1.0
-    assert u_auc([0.0], [0.5]) == 0.0
-    assert u_auc([0.3], [0.3]) == 0.5
-    assert u_auc([0.5, 0.0], [0.1]) == 0.5
-    assert math.isnan(u_auc([], [0.1]))
+def test_every_generated_flight_has_its_control():
+    fl = flights(["simple", "mujoco"], [100, 101])
+    suite = flight_suite(["simple", "mujoco"], [100, 101])
+    assert [f.spec for f in fl if f.role == "gusty"] == suite
+    controls = {f.pair: f.spec for f in fl if f.role == "control"}
+    assert set(controls) == {s.name for s in suite}
+    for s in suite:
+        assert controls[s.name] == control_of(s)
+    assert {s.engine for s in suite} == {"simple", "mujoco"}
 
 
-def _report(ch, false, flagged, correct, events, touches=4, found=1.0, refits=(0.1, 0.3)):
-    return {
-        "chamfer_m": ch, "chamfer_full_m": 2 * ch, "events_false": false,
-        "events_flagged": flagged, "events_flagged_false": correct,
-        "fp_precision": correct / flagged if flagged else math.nan,
-        "detection_recall": found, "truth_touches": touches, "event_u": events,
-        "refit_s": list(refits), "refits": len(refits), "refit_s_median": 0.2,
-    }  # fmt: skip
+def _plan():
+    logs = [
+        LogInput("/c/g1.mcap", "1" * 64, (), (("engine", "simple"), ("role", "gusty"))),
+        LogInput("/c/c1.mcap", "2" * 64, (), (("engine", "simple"), ("role", "control"))),
+        LogInput("/c/g2.mcap", "3" * 64, ("vehicle.shape=guards",),
+                 (("engine", "mujoco"), ("role", "gusty"))),
+        LogInput("/c/c2.mcap", "4" * 64, ("vehicle.shape=guards",),
+                 (("engine", "mujoco"), ("role", "control"))),
+        LogInput("/r/wall.mcap", "5" * 64, (), (("engine", "simple"), ("role", "bundled"))),
+    ]  # fmt: skip
+    return plan_batch(logs, [Variant("base")], lambda ov: load_config(None, list(ov)))
 
 
-def test_pool_counts_events_over_sessions():
-    a = _report(0.1, 3, 2, 2, [("gust", 0.6), ("gust", 0.5), ("touch", 0.0)])
-    b = _report(0.2, 2, 1, 0, [("gust", 0.0), ("touch", 0.4)], found=0.5)
-    p = pool([a, b])
-    assert p["sessions"] == 2 and p["fp_flagged"] == 3 and p["fp_correct"] == 2
-    assert p["fp_precision"] == pytest.approx(2 / 3) and p["fp_recall"] == pytest.approx(2 / 5)
-    assert p["chamfer_mean"] == pytest.approx(0.15) and p["chamfer_max"] == pytest.approx(0.2)
-    assert p["detection_recall"] == pytest.approx(6 / 8)
-    assert p["refits"] == 4 and p["refit_s_median"] == pytest.approx(0.2)
-    assert p["u_auc"] == pytest.approx(u_auc([0.6, 0.5, 0.0], [0.0, 0.4]))
-    text = summary_markdown({"default": {"overrides": [], "pooled": p,
-                                         "sessions": {"a": a, "b": b}}})  # fmt: skip
-    assert "| default | 2 |" in text and "2/3" in text and "### default (defaults)" in text
+def _rec(chamfer):
+    return {"status": "done", "report": {"chamfer_m": chamfer, "missing_share": chamfer},
+            "done": {"refit_s": [0.1], "task_wall_s": 1.0}}  # fmt: skip
 
 
-def test_suite_sessions_differ_from_the_bundled_logs():
-    assert len({s.name for s in SUITE}) == len(SUITE)
-    assert not {s.name for s in SUITE} & set(BUNDLED)
-    assert SUITE[0].sitl_args()[:3] == ["sitl", "--scene", "wall"]
+def test_groups_and_ratio_to_the_control():
+    plan = _plan()
+    g = groups(plan, "base")
+    assert list(g) == ["simple", "mujoco", "pooled", "bundled"]
+    assert len(g["pooled"]["gusty"]) == 2 and len(g["pooled"]["control"]) == 2
+    assert g["bundled"]["control"] == []
+    values = {"g1": 0.2, "c1": 0.1, "g2": 0.3, "c2": 0.3, "wall": 0.05}
+    records = {c.task.folder: _rec(values[c.log.name]) for c in plan.cells}
+    cmp = compare(plan, records)["base"]
+    assert cmp["simple"]["ratio"]["chamfer_m"] == pytest.approx(2.0)
+    assert cmp["mujoco"]["ratio"]["chamfer_m"] == pytest.approx(1.0)
+    assert cmp["pooled"]["ratio"]["chamfer_m"] == pytest.approx(0.25 / 0.2)
+    assert cmp["pooled"]["gusty"]["metrics"]["chamfer_m"]["worst"] == pytest.approx(0.3)
+    assert cmp["bundled"]["control"] is None
+    text = markdown(compare(plan, records), {"base": []})
+    assert "### simple (1/1 flights, controls 1/1)" in text
+    assert "| chamfer_m | 0.200 / 0.200 / 0.200 | 0.100 / 0.100 / 0.100 | 2.00 |" in text
+    assert "### bundled (1/1 flights)" in text
+
+
+def test_ratio_is_nan_when_undefined():
+    assert math.isnan(ratio(1.0, 0.0)) and math.isnan(ratio(math.nan, 1.0))
+    assert ratio(0.2, 0.1) == pytest.approx(2.0)

@@ -1,0 +1,292 @@
+"""Pooled metrics of a batch's task reports and the summary text (pure).
+
+Pooled metrics (per variant, over its finished tasks)
+-----------------------------------------------------
+``metrics``: for every truth metric of ``report.json`` (:data:`TRUTH_METRICS`), the number of
+tasks that have it, its mean, median and worst (largest for errors, smallest for rates to
+maximise). ``shares``: event counts pooled over tasks (gust / touch events flagged, flag
+precision, touches detected). ``u_auc``: probability that a gust event's median contact u
+exceeds a touch event's. ``refit_s_median``: median over every refit of every task.
+``task_wall_s``: mean / median / max wall time of one task (replay + outputs).
+
+A task record is ``{"status": "done" | "failed" | "missing", "report": report.json,
+"done": done.json, "error": text}`` (``pipeline.batch_outputs.read_record``).
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+from groundstation.pipeline.batch import LogInput, Plan
+
+#: Truth metrics of ``report.json`` pooled by a batch, and which way is better.
+TRUTH_METRICS: dict[str, str] = {
+    "mesh_to_truth_median_m": "low",
+    "truth_to_mesh_median_m": "low",
+    "missing_share": "low",
+    "phantom_area_m2": "low",
+    "phantom_max_patch_m2": "low",
+    "gust_events_flagged": "high",
+    "touch_events_flagged": "low",
+    "chamfer_m": "low",
+    "chamfer_full_m": "low",
+    "shape_error_m": "low",
+    "fp_precision": "high",
+    "fp_recall": "high",
+    "detection_recall": "high",
+}
+
+
+def event_u(result: Any) -> list[tuple[str, float]]:
+    """(truth kind, median contact u) of every detected event matched to the truth.
+
+    Parameters
+    ----------
+    result : pipeline.offline.PipelineResult
+        A finished run whose log carries truth; [] otherwise.
+    """
+    from groundstation.pipeline.outputs import detected_events
+    from groundstation.pipeline.scoring import match_events
+
+    fit = result.final
+    if fit is None or not result.truth:
+        return []
+    u = dict(zip(fit.ids.tolist(), fit.u.tolist(), strict=True))
+    by_event: dict[int, list[float]] = {}
+    for o in result.observations:
+        if o.label == 0 and o.id in u:
+            by_event.setdefault(o.event_id, []).append(u[o.id])
+    out = []
+    for eid, m in match_events(detected_events(result), result.truth).items():
+        if m is not None and eid in by_event:
+            out.append((m[1], float(statistics.median(by_event[eid]))))
+    return out
+
+
+# --- pooling ------------------------------------------------------------------------------------
+
+
+def _finite(values: Iterable[Any]) -> list[float]:
+    out = []
+    for v in values:
+        if isinstance(v, bool) or v is None:
+            continue
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            continue
+        if math.isfinite(f):
+            out.append(f)
+    return out
+
+
+def metric_stats(values: Iterable[Any], better: str = "low") -> dict[str, float]:
+    """n, mean, median and worst of the finite values (NaN when there are none)."""
+    xs = _finite(values)
+    if not xs:
+        return {"n": 0, "mean": math.nan, "median": math.nan, "worst": math.nan}
+    return {
+        "n": len(xs),
+        "mean": statistics.fmean(xs),
+        "median": statistics.median(xs),
+        "worst": max(xs) if better == "low" else min(xs),
+    }
+
+
+def u_auc(gust_u: Sequence[float], touch_u: Sequence[float]) -> float:
+    """P(u of a gust event > u of a touch event), ties counted half; NaN if either is empty."""
+    g, t = _finite(gust_u), _finite(touch_u)
+    if not g or not t:
+        return math.nan
+    greater = sum(a > b for a in g for b in t)
+    ties = sum(a == b for a in g for b in t)
+    return (greater + 0.5 * ties) / (len(g) * len(t))
+
+
+def _share(num: float, den: float) -> dict[str, float]:
+    return {"num": num, "den": den, "share": num / den if den else math.nan}
+
+
+def pool(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Pooled metrics of a group of task records (module docstring).
+
+    Parameters
+    ----------
+    records : sequence of dict
+        ``{"status": "done" | "failed" | ..., "report": report.json, "done": done.json}``.
+    """
+    done = [r for r in records if r.get("status") == "done"]
+    reports = [r.get("report") or {} for r in done]
+    extras = [r.get("done") or {} for r in done]
+    metrics = {
+        k: metric_stats([rep.get(k) for rep in reports], better)
+        for k, better in TRUTH_METRICS.items()
+    }
+
+    def total(key: str, weight: str | None = None) -> float:
+        s = 0.0
+        for rep in reports:
+            v = rep.get(key)
+            if weight is not None:
+                w = rep.get(weight)
+                if v is None or w is None or not math.isfinite(float(v)):
+                    continue
+                s += round(float(v) * float(w))
+            elif v is not None and math.isfinite(float(v)):
+                s += float(v)
+        return s
+
+    shares = {
+        "gust_events_flagged": _share(total("events_flagged_false"), total("events_false")),
+        "touch_events_flagged": _share(
+            total("touch_events_flagged", "events_touch"), total("events_touch")
+        ),
+        "fp_precision": _share(total("events_flagged_false"), total("events_flagged")),
+        "detection_recall": _share(
+            total("detection_recall", "truth_touches"), total("truth_touches")
+        ),
+    }
+    events = [tuple(e) for x in extras for e in x.get("event_u", [])]
+    refits = _finite(t for x in extras for t in x.get("refit_s", []))
+    walls = _finite(x.get("task_wall_s") for x in extras)
+    return {
+        "tasks": len(records),
+        "done": len(done),
+        "failed": sum(r.get("status") == "failed" for r in records),
+        "metrics": metrics,
+        "shares": shares,
+        "u_auc": u_auc(
+            [u for k, u in events if k == "gust"], [u for k, u in events if k != "gust"]
+        ),
+        "refits": len(refits),
+        "refit_s_median": statistics.median(refits) if refits else math.nan,
+        "task_wall_s": {
+            "mean": statistics.fmean(walls) if walls else math.nan,
+            "median": statistics.median(walls) if walls else math.nan,
+            "max": max(walls) if walls else math.nan,
+        },
+        "contacts": total("contacts"),
+        "observations": total("observations"),
+    }
+
+
+def log_names(logs: Sequence[LogInput]) -> dict[str, str]:
+    """Path -> the log's name in the summary: its stem, or ``stem-<sha256[:8]>`` when two
+    different logs share a stem."""
+    by_stem: dict[str, set[str]] = {}
+    for log in logs:
+        by_stem.setdefault(log.name, set()).add(log.path)
+    return {
+        log.path: log.name if len(by_stem[log.name]) == 1 else f"{log.name}-{log.sha256[:8]}"
+        for log in logs
+    }
+
+
+def summarize(plan: Plan, records: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """The batch summary: pooled per variant, per log, and every failure.
+
+    Parameters
+    ----------
+    plan : Plan
+    records : dict
+        Task folder -> record (``status``, ``report``, ``done``, ``error``).
+    """
+    per_variant: dict[str, Any] = {}
+    per_log: dict[str, dict[str, Any]] = {}
+    names = log_names([c.log for c in plan.cells])
+    for v in plan.variants:
+        cells = [c for c in plan.cells if c.variant == v.name]
+        recs = [records.get(c.task.folder, {"status": "missing"}) for c in cells]
+        per_variant[v.name] = {
+            "overrides": [*plan.base_overrides, *v.overrides],
+            "pooled": pool(recs),
+        }
+        for c, r in zip(cells, recs, strict=True):
+            rep = r.get("report") or {}
+            per_log.setdefault(names[c.log.path], {})[v.name] = {
+                "folder": c.task.folder,
+                "status": r.get("status", "missing"),
+                **{k: rep.get(k) for k in (*TRUTH_METRICS, "contacts", "refits")},
+                "task_wall_s": (r.get("done") or {}).get("task_wall_s"),
+            }
+    failed = [
+        {"folder": t.folder, "log": t.log, "error": records.get(t.folder, {}).get("error", "")}
+        for t in plan.tasks
+        if records.get(t.folder, {}).get("status") != "done"
+    ]
+    return {"variants": per_variant, "logs": per_log, "failed": failed}
+
+
+# --- text ---------------------------------------------------------------------------------------
+
+
+def fmt(v: Any, spec: str = ".3f") -> str:
+    """A number for a table; ``-`` for missing / NaN."""
+    if v is None or isinstance(v, bool):
+        return "-"
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return str(v)
+    return "-" if not math.isfinite(f) else format(f, spec)
+
+
+def summary_markdown(summary: Mapping[str, Any], title: str = "groundstation batch") -> str:
+    """``summary.md``: pooled metrics per variant, flag shares, timing, per log, failures."""
+    variants = summary["variants"]
+    names = list(variants)
+    lines = [f"# {title}", ""]
+    for name, v in variants.items():
+        p = v["pooled"]
+        lines.append(
+            f"- **{name}**: {' '.join(v['overrides']) or '(defaults)'} - {p['done']}/{p['tasks']}"
+            f" tasks done, {p['failed']} failed"
+        )
+    lines += ["", "## Truth metrics (mean / median / worst over logs)", ""]
+    lines += ["| metric | better | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
+    for key, better in TRUTH_METRICS.items():
+        cells = []
+        for name in names:
+            s = variants[name]["pooled"]["metrics"][key]
+            cells.append(
+                "-" if not s["n"] else f"{fmt(s['mean'])} / {fmt(s['median'])} / {fmt(s['worst'])}"
+            )
+        lines.append(f"| {key} | {better} | " + " | ".join(cells) + " |")
+    lines += ["", "## Pooled over events, and time", ""]
+    lines += ["| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    for key in ("gust_events_flagged", "touch_events_flagged", "fp_precision", "detection_recall"):
+        row = []
+        for name in names:
+            s = variants[name]["pooled"]["shares"][key]
+            row.append(f"{fmt(s['share'], '.2f')} ({fmt(s['num'], '.0f')}/{fmt(s['den'], '.0f')})")
+        lines.append(f"| {key} | " + " | ".join(row) + " |")
+    rows = {
+        "u-AUC gust vs touch": lambda p: fmt(p["u_auc"], ".2f"),
+        "refit median (s)": lambda p: f"{fmt(p['refit_s_median'], '.2f')} ({p['refits']} refits)",
+        "task wall mean / median / max (s)": lambda p: " / ".join(
+            fmt(p["task_wall_s"][k], ".1f") for k in ("mean", "median", "max")
+        ),
+    }
+    for label, f in rows.items():
+        lines.append(f"| {label} | " + " | ".join(f(variants[n]["pooled"]) for n in names) + " |")
+    cols = ("mesh_to_truth_median_m", "missing_share", "phantom_max_patch_m2",
+            "gust_events_flagged", "touch_events_flagged", "chamfer_m")  # fmt: skip
+    lines += ["", "## Per log", ""]
+    lines += ["| log | variant | status | " + " | ".join(cols) + " | contacts | task wall (s) |"]
+    lines += ["|---|---|---|" + "---|" * (len(cols) + 2)]
+    for log, per in summary["logs"].items():
+        for name, r in per.items():
+            lines.append(
+                f"| {log} | {name} | {r['status']} | "
+                + " | ".join(fmt(r.get(k)) for k in cols)
+                + f" | {fmt(r.get('contacts'), '.0f')} | {fmt(r.get('task_wall_s'), '.1f')} |"
+            )
+    if summary.get("failed"):
+        lines += ["", "## Failed or missing tasks", ""]
+        for f in summary["failed"]:
+            err = (f.get("error") or "not run").strip().splitlines()
+            lines.append(f"- `{f['folder']}`: {err[-1] if err else 'not run'}")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,185 @@
+"""groundstation batch, the pure part: variants, task keys, config hashing, pooling, summary."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from groundstation.config import load_config
+from groundstation.errors import ConfigError
+from groundstation.pipeline.batch import LogInput, Variant, config_hash, plan_batch
+from groundstation.pipeline.pooling import (
+    TRUTH_METRICS,
+    log_names,
+    metric_stats,
+    pool,
+    summarize,
+    summary_markdown,
+    u_auc,
+)
+
+A = LogInput("/data/a.mcap", "a" * 64)
+B = LogInput("/data/b.mcap", "b" * 64, overrides=("vehicle.shape=guards",))
+
+
+def resolve(overrides):
+    return load_config(None, list(overrides))
+
+
+def test_variant_parsing_keeps_commas_inside_values():
+    assert Variant.parse("default") == Variant("default", ())
+    v = Variant.parse("floor:mapping.lengthscale_min=0.3, contact.external_spacing_m=0")
+    assert v.overrides == ("mapping.lengthscale_min=0.3", "contact.external_spacing_m=0")
+    v = Variant.parse("box:surface.region_min=0,0,0,surface.region_max=8,4,2")
+    assert v.overrides == ("surface.region_min=0,0,0", "surface.region_max=8,4,2")
+    resolve(v.overrides)  # and they are valid settings
+    with pytest.raises(ConfigError, match="key=value"):
+        Variant.parse("x:mapping.lengthscale_min")
+    with pytest.raises(ConfigError, match="name"):
+        Variant.parse(":a=1")
+
+
+def test_config_hash_follows_the_resolved_settings_not_their_spelling():
+    base = config_hash(resolve([]))
+    assert base == config_hash(resolve([]))
+    # the default value spelled out is the same configuration, so the same task
+    assert config_hash(resolve(["contact.threshold_g=1.2"])) == base
+    assert config_hash(resolve(["contact.threshold_g=1.0"])) != base
+    assert config_hash(resolve([]), "final") != base
+    assert config_hash(resolve([]), "final", 2) != config_hash(resolve([]), "final")
+    assert len(base) == 64 and int(base, 16) >= 0
+
+
+def test_plan_makes_one_task_per_distinct_log_and_settings():
+    variants = [Variant("base"), Variant("same", ("contact.threshold_g=1.2",)),
+                Variant("low", ("contact.threshold_g=1.0",))]  # fmt: skip
+    plan = plan_batch([A, B], variants, resolve, base_overrides=["mapper.flag_p=0.4"])
+    assert len(plan.cells) == 6
+    assert len(plan.tasks) == 4  # 'same' resolves to the settings of 'base'
+    folders = {c.task.folder for c in plan.cells}
+    assert len(folders) == 4
+    for c in plan.cells:
+        assert c.task.folder.startswith(c.log.name + "-")
+        assert c.log.sha256[:12] in c.task.folder and c.task.config_hash[:12] in c.task.folder
+        assert c.task.key == f"{c.log.sha256}-{c.task.config_hash}"
+        assert c.task.config.mapper.flag_p == 0.4
+    b_low = next(c for c in plan.cells if c.log is B and c.variant == "low")
+    assert b_low.task.config.vehicle.shape == "guards"  # the log's own settings
+    assert b_low.task.config.contact.threshold_g == 1.0  # the variant's
+
+
+def test_plan_order_log_then_batch_then_variant():
+    log = LogInput("/data/c.mcap", "c" * 64, overrides=("contact.threshold_g=2.0",))
+    plan = plan_batch(
+        [log], [Variant("v", ("contact.threshold_g=0.9",))], resolve,
+        base_overrides=["contact.threshold_g=1.5"],
+    )  # fmt: skip
+    assert plan.cells[0].task.config.contact.threshold_g == 0.9
+    plan = plan_batch([log], [], resolve, base_overrides=["contact.threshold_g=1.5"])
+    assert plan.cells[0].task.config.contact.threshold_g == 1.5
+    assert plan.variants == (Variant("default"),)
+
+
+def test_plan_rejects_bad_input_before_any_work():
+    with pytest.raises(ConfigError, match="unique"):
+        plan_batch([A], [Variant("x"), Variant("x", ("mapper.flag_p=0.1",))], resolve)
+    with pytest.raises(ConfigError, match="map"):
+        plan_batch([A], [], resolve, map_mode="fast")
+    with pytest.raises(ConfigError):
+        plan_batch([A], [Variant("bad", ("mapper.no_such_key=1",))], resolve)
+    with pytest.raises(ConfigError, match="at least one log"):
+        plan_batch([], [], resolve)
+
+
+def test_metric_stats_worst_depends_on_direction():
+    s = metric_stats([0.1, 0.3, None, math.nan, 0.2], "low")
+    assert s["n"] == 3 and s["mean"] == pytest.approx(0.2) and s["median"] == pytest.approx(0.2)
+    assert s["worst"] == pytest.approx(0.3)
+    assert metric_stats([0.9, 0.5], "high")["worst"] == pytest.approx(0.5)
+    assert math.isnan(metric_stats([], "low")["mean"])
+
+
+def test_u_auc_is_the_probability_a_gust_outranks_a_touch():
+    assert u_auc([0.5, 0.6], [0.0, 0.1]) == 1.0
+    assert u_auc([0.0], [0.5]) == 0.0
+    assert u_auc([0.3], [0.3]) == 0.5
+    assert u_auc([0.5, 0.0], [0.1]) == 0.5
+    assert math.isnan(u_auc([], [0.1]))
+
+
+def _record(ch, false, flagged, correct, touch_share=0.0, touches=4, found=1.0, wall=2.0):
+    report = {
+        "chamfer_m": ch, "missing_share": ch / 2, "events_false": false,
+        "events_flagged": flagged, "events_flagged_false": correct,
+        "gust_events_flagged": correct / false if false else None,
+        "touch_events_flagged": touch_share, "events_touch": touches,
+        "detection_recall": found, "truth_touches": touches, "contacts": 10, "refits": 2,
+    }  # fmt: skip
+    done = {"refit_s": [0.1, 0.3], "task_wall_s": wall,
+            "event_u": [["gust", 0.6], ["touch", 0.0]]}  # fmt: skip
+    return {"status": "done", "report": report, "done": done}
+
+
+def test_pool_counts_events_over_logs_and_ignores_failures_in_metrics():
+    a = _record(0.1, 3, 2, 2, touch_share=0.25, wall=2.0)
+    b = _record(0.3, 2, 1, 0, found=0.5, wall=4.0)
+    failed = {"status": "failed", "error": "boom"}
+    p = pool([a, b, failed])
+    assert (p["tasks"], p["done"], p["failed"]) == (3, 2, 1)
+    assert p["metrics"]["chamfer_m"]["mean"] == pytest.approx(0.2)
+    assert p["metrics"]["chamfer_m"]["worst"] == pytest.approx(0.3)
+    assert p["metrics"]["gust_events_flagged"]["worst"] == pytest.approx(0.0)
+    assert p["shares"]["gust_events_flagged"]["share"] == pytest.approx(2 / 5)
+    assert p["shares"]["fp_precision"]["share"] == pytest.approx(2 / 3)
+    assert p["shares"]["touch_events_flagged"]["num"] == 1  # 0.25 x 4 touches
+    assert p["shares"]["detection_recall"]["share"] == pytest.approx(6 / 8)
+    assert p["refits"] == 4 and p["refit_s_median"] == pytest.approx(0.2)
+    assert p["task_wall_s"]["median"] == pytest.approx(3.0) and p["task_wall_s"]["max"] == 4.0
+    assert p["u_auc"] == 1.0
+    assert set(p["metrics"]) == set(TRUTH_METRICS)
+
+
+def test_summary_lists_every_variant_log_and_failure():
+    plan = plan_batch([A, B], [Variant("base"), Variant("low", ("contact.threshold_g=1.0",))],
+                      resolve)  # fmt: skip
+    records = {}
+    for i, t in enumerate(plan.tasks):
+        records[t.folder] = _record(0.1 * (i + 1), 2, 1, 1) if i else {
+            "status": "failed", "error": "InputDataError: truncated log\n"}  # fmt: skip
+    s = summarize(plan, records)
+    assert set(s["variants"]) == {"base", "low"} and set(s["logs"]) == {"a", "b"}
+    assert s["variants"]["base"]["pooled"]["failed"] == 1
+    assert [f["folder"] for f in s["failed"]] == [plan.tasks[0].folder]
+    text = summary_markdown(s)
+    assert "| chamfer_m | low |" in text and "truncated log" in text
+    assert "| a | base | failed |" in text
+
+
+def test_logs_sharing_a_name_stay_apart_in_the_summary():
+    other = LogInput("/elsewhere/a.mcap", "f" * 64)
+    assert log_names([A, B, other, A]) == {
+        A.path: "a-aaaaaaaa",
+        other.path: "a-ffffffff",
+        B.path: "b",
+    }
+    plan = plan_batch([A, other], [], resolve)
+    s = summarize(plan, {})
+    assert set(s["logs"]) == {"a-aaaaaaaa", "a-ffffffff"}
+    assert all(r["default"]["status"] == "missing" for r in s["logs"].values())
+
+
+def test_cli_rejects_bad_input_before_starting_a_cluster(tmp_path, capsys):
+    from pathlib import Path
+
+    from groundstation.cli import main
+
+    log = Path(__file__).resolve().parents[3] / "replay_logs" / "wall_slow_touch_gusts.mcap"
+    out = tmp_path / "out"
+    assert main(["batch", str(tmp_path / "missing.mcap"), "--out", str(out)]) == 2
+    assert "missing.mcap" in capsys.readouterr().err
+    assert main(["batch", str(log), "--out", str(out), "--variant", "x:mapper.nope=1"]) == 2
+    assert "mapper" in capsys.readouterr().err
+    assert main(["batch", str(log), "--out", str(out), "--workers", "0"]) == 2
+    assert "--workers" in capsys.readouterr().err
+    assert not out.exists()  # nothing was started or written
