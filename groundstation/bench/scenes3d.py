@@ -68,6 +68,10 @@ class ObservationSet3D:
         Rows of false contacts that belong to a gust cluster (several gusts at one spot).
     touched : (k, 3) float64 or None
         True contact points of the genuine touches (where the surface was touched).
+    placement_m : float
+        Std (m) of the contact placement noise, which the observations carry as the detector's
+        placement uncertainty ``sigma_m`` (the impulse detector reports one per contact); NaN:
+        none reported.
     """
 
     X: np.ndarray
@@ -83,6 +87,7 @@ class ObservationSet3D:
     normals: np.ndarray | None = None
     cluster: np.ndarray | None = None
     touched: np.ndarray | None = None
+    placement_m: float = math.nan
 
     @property
     def outlier(self) -> np.ndarray:
@@ -130,8 +135,10 @@ class ObservationSet3D:
         ev = self.event if self.event is not None else np.where(self.y > 0, -1, self.ids)
         nrm = self.normals if self.normals is not None else np.zeros_like(self.X)
         pf = np.full(len(self.y), np.nan) if p_false is None else p_false
+        sig = self.placement_m
         return [
-            Observation(int(i), int(t), x, float(y), n, int(e), 0.0, p_false=float(p))
+            Observation(int(i), int(t), x, float(y), n, int(e), 0.0, p_false=float(p),
+                        sigma_m=sig if y <= 0 else math.nan)  # fmt: skip
             for i, t, x, y, n, e, p in zip(
                 self.ids, self.t_ns, self.X, self.y, nrm, ev, pf, strict=True
             )
@@ -470,6 +477,7 @@ def paper3d(
         normals=nrm[o],
         cluster=clu[o],
         touched=np.concatenate(touched),
+        placement_m=float(noise),
     )
 
 
@@ -594,6 +602,7 @@ def session40(
         normals=nrm[keep][order],
         cluster=np.zeros(len(X), dtype=bool),
         touched=np.concatenate(touched),
+        placement_m=float(noise),
     )
 
 
