@@ -121,7 +121,9 @@ def test_replay_command_writes_every_output(tmp_path):
     assert len(list((out / "snapshots").glob("*.png"))) == 1
     with (out / "observations.csv").open() as fh:
         rows = list(csv.DictReader(fh))
-    assert list(rows[0]) == ["id", "x", "y", "z", "label", "t_s", "event_id", "u", "flag"]
+    # the original columns first (a contract), the detector's evidence and the map's after
+    assert list(rows[0])[:9] == ["id", "x", "y", "z", "label", "t_s", "event_id", "u", "flag"]
+    assert {"p_false", "dv_mps", "rebound"} <= set(rows[0])
     assert len(rows) == report["observations"]
     assert {r["label"] for r in rows} == {"-1", "0", "1"}
     flagged = [r for r in rows if r["flag"] == "1"]

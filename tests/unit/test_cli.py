@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import pytest
+
 from groundstation import cli
+from groundstation.errors import ConfigError
 
 
 def test_top_level_help_lists_every_command(capsys):
@@ -68,15 +71,22 @@ def test_live_signing_key_errors_name_the_file(capsys, tmp_path):
 
 
 def test_live_signing_key_reaches_the_link_process_as_a_setting(tmp_path):
+    """``--signing-key`` becomes ``acquisition.signing_key_file`` of the session's resolved
+    configuration, which every worker (the link included) reads from the session directory."""
     import argparse
 
-    from groundstation.cli.live import add_live_arguments, plan
+    from groundstation.cli.live import _check_signing, _signing_sets, add_live_arguments
+    from groundstation.runtime.configuration import resolve
 
     key = tmp_path / "k.hex"
     key.write_text("ab" * 32)
     parser = argparse.ArgumentParser()
     add_live_arguments(parser)
     args = parser.parse_args(["--link", "udp://127.0.0.1:14550", "--signing-key", str(key)])
-    _, specs = plan(args, "s1")
-    link = next(s for s in specs if s.name == "link")
-    assert f"acquisition.signing_key_file={key.resolve()}" in link.argv
+    resolved = resolve(args.config, [*args.set, *_signing_sets(args)])
+    _check_signing(resolved)  # a readable key
+    assert resolved.config.acquisition.signing_key_file == str(key.resolve())
+    assert f'signing_key_file = "{key.resolve()}"' in resolved.text  # what the workers read
+    key.write_text("not a key")
+    with pytest.raises(ConfigError):
+        _check_signing(resolve(args.config, [*args.set, *_signing_sets(args)]))

@@ -19,7 +19,9 @@ def test_defaults_are_the_papers():
 def test_toml_then_overrides(tmp_path):
     path = tmp_path / "gs.toml"
     path.write_text('[mapping]\nlengthscale = 0.4\nmodel = "gpis"\n[surface]\nspacing = 0.1\n')
-    cfg = load_config(path, ["mapping.lengthscale=0.3", "surface.region_max=9,5,3"])
+    cfg = load_config(
+        path, ["mapping.lengthscale=0.3", "surface.region_min=0,0,0", "surface.region_max=9,5,3"]
+    )
     assert cfg.mapping.lengthscale == 0.3
     assert cfg.mapping.model == "gpis"
     assert cfg.surface.spacing == 0.1
