@@ -22,6 +22,7 @@ All functions are pure and vectorised over leading axes: vectors (..., 3), quate
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -219,6 +220,43 @@ def motive_to_world(
         pw = np.stack([p[..., 0], -p[..., 2], p[..., 1]], axis=-1)
         return pw, np.stack([qw, qx, -qz, qy], axis=-1)
     return p.copy(), np.stack([qw, qx, qy, qz], axis=-1)
+
+
+def motive_pose_to_world(
+    position: tuple[float, float, float],
+    orientation: tuple[float, float, float, float],
+    up: Up = "y",
+    order: Order = "xyzw",
+) -> tuple[tuple[float, float, float], tuple[float, float, float, float]] | None:
+    """One Motive pose to the world frame in plain floats: :func:`motive_to_world` (after
+    :meth:`AxisConvention.to_world`'s reordering) for a single pose, without numpy's per-call
+    overhead (a NatNet stream decodes one such pose per rigid body per frame).
+
+    The result is bit for bit the one of the array version: the norm sums the squares left to
+    right, as numpy's reduction does over 4 contiguous elements (``tests/unit/firmware_bridge/
+    test_frames.py`` checks it on random poses). None when the quaternion is zero, denormal or
+    not finite (where the array version raises :class:`AxisError`).
+
+    Parameters
+    ----------
+    position : (3,) floats
+        Metres in Motive's frame.
+    orientation : (4,) floats
+        Motive quaternion in ``order``.
+    up, order : see :class:`AxisConvention`
+    """
+    if order == "xyzw":
+        qx, qy, qz, qw = orientation
+    else:
+        qw, qx, qy, qz = orientation
+    norm = math.sqrt(((qx * qx + qy * qy) + qz * qz) + qw * qw)
+    if not (math.isfinite(norm) and norm >= 1e-12):
+        return None
+    qx, qy, qz, qw = qx / norm, qy / norm, qz / norm, qw / norm
+    x, y, z = position
+    if up == "y":
+        return (x, -z, y), (qw, qx, -qz, qy)
+    return (x, y, z), (qw, qx, qy, qz)
 
 
 def world_to_motive(position: ArrayLike, q_wxyz: ArrayLike, up: Up = "y") -> tuple[Array, Array]:

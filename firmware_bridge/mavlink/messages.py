@@ -37,7 +37,7 @@ def _meta() -> Any:
 
 def _as_floats(value: Sequence[float], n: int, name: str) -> tuple[float, ...]:
     try:
-        out = tuple(float(v) for v in value)
+        out = tuple(map(float, value))
     except (TypeError, ValueError) as exc:
         raise ProtocolError(f"{name} must be {n} numbers, got {value!r}") from exc
     if len(out) != n:

@@ -121,9 +121,72 @@ def _error(what: str, offset: int, version: tuple[int, int]) -> NatNetParseError
     )
 
 
+#: 4.1+ frame with rigid bodies only: frame number, (count, bytes) of marker sets, other
+#: markers, rigid bodies; after the bodies (count, bytes) of skeletons, assets, labeled markers,
+#: force plates, devices, then the suffix, precision timestamp and tail.
+_ONLY_BODIES_HEAD = struct.Struct("<i6i")
+_ONLY_BODIES_TAIL = struct.Struct("<10iIIdQQQIIhi")
+
+
+def _parse_bodies_only(buf: bytes, end: int) -> FrameOfData | None:
+    """A 4.1+ frame whose only non-empty section is the rigid bodies (what a mocap streaming
+    rigid bodies sends every frame), in two unpacks; None for any other frame (the general
+    parser then decides). When it returns a frame, the general parser returns the same one:
+    every section is empty with a zero byte count, the bodies fill their section exactly and
+    the tail ends the datagram."""
+    if end < _HEADER.size + _ONLY_BODIES_HEAD.size:
+        return None
+    frame_id, n_sets, sets_size, n_other, other_size, n_bodies, bodies_size = (
+        _ONLY_BODIES_HEAD.unpack_from(buf, _HEADER.size)
+    )
+    o = _HEADER.size + _ONLY_BODIES_HEAD.size
+    if (
+        n_sets or sets_size or n_other or other_size or n_bodies < 0
+        or bodies_size != n_bodies * RIGID_BODY_SIZE
+        or end - o - bodies_size != _ONLY_BODIES_TAIL.size
+    ):  # fmt: skip
+        return None
+    bodies = tuple(
+        RigidBody(rid, (x, y, z), (qx, qy, qz, qw), err, bool(params & 0x01))
+        for rid, x, y, z, qx, qy, qz, qw, err, params in _RIGID_BODY.iter_unpack(
+            buf[o : o + bodies_size]
+        )
+    )
+    (
+        *sections, timecode, subframe, timestamp, mid_ts, recv_ts, tx_ts, prec_s, prec_frac,
+        params, _eod,
+    ) = _ONLY_BODIES_TAIL.unpack_from(buf, o + bodies_size)  # fmt: skip
+    if any(sections):
+        return None
+    return FrameOfData(
+        frame_id=frame_id,
+        rigid_bodies=bodies,
+        timestamp_s=timestamp,
+        camera_mid_exposure_ts=mid_ts,
+        data_received_ts=recv_ts,
+        transmit_ts=tx_ts,
+        params=params & 0xFFFF,
+        timecode=timecode,
+        timecode_subframe=subframe,
+        precision_timestamp_s=prec_s,
+        precision_timestamp_frac=prec_frac,
+        marker_set_count=0,
+        other_marker_count=0,
+        skeleton_count=0,
+        asset_count=0,
+        labeled_marker_count=0,
+        force_plate_count=0,
+        device_count=0,
+    )
+
+
 def _parse_frame(buf: bytes, version: tuple[int, int], end: int) -> FrameOfData:
     """Decode a frame-of-data payload in ``buf[4:end]`` (``len(buf) == end``)."""
     sized = version >= (4, 1)  # 4.1: every section carries its byte count
+    if sized:
+        frame = _parse_bodies_only(buf, end)
+        if frame is not None:
+            return frame
     o = _HEADER.size
     section = "frame number"
     counts = {}

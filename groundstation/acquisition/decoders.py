@@ -32,7 +32,13 @@ from typing import Any
 
 import numpy as np
 
-from firmware_bridge.frames import AxisConvention, AxisError, ned_to_enu, quat_ned_frd_to_enu_flu
+from firmware_bridge.frames import (
+    AxisConvention,
+    AxisError,
+    motive_pose_to_world,
+    ned_to_enu,
+    quat_ned_frd_to_enu_flu,
+)
 from firmware_bridge.mavlink import MavlinkCodec
 from firmware_bridge.mavlink.health import LinkHealth
 from firmware_bridge.mavlink.messages import (
@@ -65,7 +71,7 @@ _MAX_TIMESTAMP_S = INT64_MAX / 1e9
 
 def in_int64(*values: int) -> bool:
     """True if every value fits a signed 64-bit integer (bus header and payload times)."""
-    return all(-INT64_MAX - 1 <= v <= INT64_MAX for v in values)
+    return not values or (-INT64_MAX - 1 <= min(values) and max(values) <= INT64_MAX)
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,7 +160,7 @@ class StreamCounters:
 
 
 def _finite(*values: tuple[float, ...]) -> bool:
-    return all(math.isfinite(v) for vs in values for v in vs)
+    return all(all(map(math.isfinite, vs)) for vs in values)
 
 
 class MavlinkStreamDecoder:
@@ -243,7 +249,8 @@ class MavlinkStreamDecoder:
             )
         if isinstance(rec, AttitudeSample):
             q = np.array(rec.quaternion)
-            norm = float(np.linalg.norm(q)) if _finite(rec.quaternion, rec.rates) else math.nan
+            # np.linalg.norm of a 1-D float vector is sqrt(q.dot(q)): the same bits, less overhead
+            norm = math.sqrt(q.dot(q)) if _finite(rec.quaternion, rec.rates) else math.nan
             if not norm > 1e-12 or not math.isfinite(norm):  # zero, denormal or overflowing
                 self.counters.nonfinite += 1
                 return None
@@ -391,20 +398,21 @@ class NatNetStreamDecoder:
             c.out_of_range += 1
             return []
         out = []
+        up, order = self.convention.motive_up, self.convention.quaternion_order
         for body in msg.rigid_bodies:
             valid = bool(body.tracking_valid)
-            try:
-                p, q = self.convention.to_world(body.position, body.orientation)
-                if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
-                    raise AxisError("non-finite pose")
-            except AxisError:  # lost track: zeros or NaN on the wire
-                p, q, valid = np.array(_NAN3), np.array(_NAN4), False
+            # AxisConvention.to_world on one pose, in floats (same bits, a tenth of the time)
+            world = motive_pose_to_world(body.position, body.orientation, up, order)
+            if world is None or not _finite(*world):  # lost track: zeros or NaN on the wire
+                p, q, valid = _NAN3, _NAN4, False
                 c.nonfinite += 1
+            else:
+                p, q = world
             out.append(
                 Decoded(
                     "samples.pose",
                     {"body_id": int(body.id), "valid": valid, "t_station_ns": t_station_ns},
-                    {"position_m": np.asarray(p, float), "q_wxyz": np.asarray(q, float)},
+                    {"position_m": np.array(p), "q_wxyz": np.array(q)},
                     source_ns,
                     recv_ns,
                 )

@@ -18,7 +18,7 @@ silently. Opening raises only :class:`RecordingError` (or ``LayoutError`` for a 
 
 from __future__ import annotations
 
-import heapq
+import bisect
 import io
 import os
 import struct
@@ -578,9 +578,12 @@ class Recording:
     def _merge_chunks(
         self, wanted: set[str] | None, start_ns: int | None, end_ns: int | None
     ) -> Iterator[RecordedMessage]:
-        # k-way merge over chunks sorted by start time: a queued message is safe to emit once
-        # no chunk still unread can start before it (same order as mcap's message queue:
-        # log time, then chunk offset, then position in the chunk).
+        # Merge over chunks sorted by start time: a queued message is safe to emit once no
+        # chunk still unread can start before it (same order as mcap's message queue: log
+        # time, then chunk offset, then position in the chunk). The queue is a sorted list
+        # extended by whole chunks (Timsort merges the two sorted runs in linear time) rather
+        # than a heap pushed and popped per message: with the recorder's chunks, which do not
+        # overlap, every chunk's messages leave in one slice.
         refs = sorted(
             (
                 r
@@ -590,37 +593,36 @@ class Recording:
             ),
             key=lambda r: (r.start_ns, r.offset),
         )
-        heap: list[tuple[int, int, int, ChunkMessage]] = []
+        channels = self._channels
+        queue: list[tuple[int, int, int, RecordedMessage]] = []
         for ref in refs:
-            while heap and heap[0][0] < ref.start_ns:
-                yield self._message_from_heap(heapq.heappop(heap))
+            if queue and queue[0][0] < ref.start_ns:
+                k = bisect.bisect_left(queue, (ref.start_ns,))
+                for item in queue[:k]:
+                    yield item[3]
+                del queue[:k]
             records = self._load_chunk(ref)
+            off = ref.offset
+            added = []
             for i, rec in enumerate(records or ()):
                 if isinstance(rec, Channel):
-                    self._channels.setdefault(rec.id, _info(rec))
+                    channels.setdefault(rec.id, _info(rec))
                     continue
-                ch = self._channels.get(rec.channel_id)
+                ch = channels.get(rec.channel_id)
                 if ch is None or (wanted is not None and ch.topic not in wanted):
                     continue
-                if start_ns is not None and rec.log_time < start_ns:
+                t = rec.log_time
+                if start_ns is not None and t < start_ns:
                     continue
-                if end_ns is not None and rec.log_time >= end_ns:
+                if end_ns is not None and t >= end_ns:
                     continue
-                heapq.heappush(heap, (rec.log_time, ref.offset, i, rec))
-        while heap:
-            yield self._message_from_heap(heapq.heappop(heap))
-
-    def _message_from_heap(self, item: tuple[int, int, int, ChunkMessage]) -> RecordedMessage:
-        msg = item[3]
-        ch = self._channels[msg.channel_id]
-        return RecordedMessage(
-            topic=ch.topic,
-            log_time_ns=msg.log_time,
-            publish_time_ns=msg.publish_time,
-            data=msg.data,
-            sequence=msg.sequence,
-            channel=ch,
-        )
+                msg = RecordedMessage(ch.topic, t, rec.publish_time, rec.data, rec.sequence, ch)
+                added.append((t, off, i, msg))
+            if added:
+                queue += added
+                queue.sort()  # (log time, chunk offset, index) is unique: no msg compared
+        for item in queue:
+            yield item[3]
 
     def topics(self) -> dict[str, int]:
         """Message count per topic."""

@@ -289,9 +289,16 @@ class SessionRecording:
 
     def _remapped(self, k: int, it: Iterator[RecordedMessage]) -> Iterator[RecordedMessage]:
         local = self._local[k]
+        same: dict[int, ChannelInfo] = {}  # channel id -> the segment's channel equal to g
         for msg in it:
-            g = local.get(msg.channel.id)
-            if g is None or g == msg.channel:
+            ch = msg.channel
+            if same.get(ch.id) is ch:  # compared once per channel, not per message
+                yield msg
+                continue
+            g = local.get(ch.id)
+            if g is None or g == ch:
+                if g is not None:
+                    same[ch.id] = ch
                 yield msg
             else:
                 yield RecordedMessage(

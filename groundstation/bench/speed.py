@@ -13,6 +13,11 @@ One process, BLAS limited to one thread (threadpoolctl), on the paper's scales:
   ``chunk_mb`` (the peak RSS above the process baseline is reported: chunking keeps it at a
   few hundred MB), and the default mapper's own narrow-band mesh.
 
+- **Replay throughput** (``--replay LOG``, repeatable): the decode + detect path of ``replay``
+  (everything before the mapper: MCAP reading, MAVLink/NatNet decoding, alignment, the contact
+  stage; :func:`groundstation.pipeline.offline.detect_offline`) on each log, as wall and CPU
+  seconds per minute of log and times real time. ``--replay-only`` skips the estimator rows.
+
 Results: a markdown table (stdout and ``--out``/speed.md) and ``speed.json``. ``--quick`` skips
 the exact 3D fit and the exact std prediction (minutes each) and shrinks the 3D set.
 """
@@ -106,6 +111,28 @@ def measure(quick: bool = False, chunk_mb: float = 64.0) -> list[dict]:
     mesh, s, mb = _timed(model.mesh)
     _row(rows, "default mapper: narrow-band field + mesh + vertex std (every tile)",
          len(mesh.vertices), s, mb, f"{len(mesh.faces)} triangles")  # fmt: skip
+    return rows
+
+
+def replay_throughput(paths: list[str]) -> list[dict]:
+    """Decode + detect seconds of each log in ``paths`` (module docstring), one row per log."""
+    from pathlib import Path
+
+    from groundstation.pipeline.offline import detect_offline
+
+    rows: list[dict] = []
+    for path in paths:
+        c0 = time.process_time()
+        run, wall, mb = _timed(detect_offline, str(path))
+        cpu = time.process_time() - c0
+        minutes = run.duration_s / 60.0
+        note = (
+            f"{run.duration_s:.0f} s of log: {wall / minutes:.2f} s wall, {cpu / minutes:.2f} s "
+            f"CPU per log-minute, {run.duration_s / wall:.1f}x real time; "
+            f"{run.stats.get('imu', 0):,} IMU samples, {len(run.observations):,} observations"
+        )
+        _row(rows, f"replay decode + detect: {Path(path).name}", run.stats.get("imu", 0), wall,
+             mb, note)  # fmt: skip
     return rows
 
 

@@ -532,6 +532,17 @@ def add_speed_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="results/speed", help="output folder (created)")
     parser.add_argument("--quick", action="store_true", help="no exact 3D fit, n ~ 750 in 3D")
     parser.add_argument("--chunk-mb", type=float, default=64.0, help="prediction chunk budget")
+    parser.add_argument(
+        "--replay",
+        action="append",
+        default=[],
+        metavar="LOG",
+        help="also time replay's decode + detect path on this recording (repeatable): seconds "
+        "per log-minute and times real time",
+    )
+    parser.add_argument(
+        "--replay-only", action="store_true", help="only the --replay rows (no estimator rows)"
+    )
 
 
 def run_speed(args: argparse.Namespace) -> int:
@@ -539,7 +550,8 @@ def run_speed(args: argparse.Namespace) -> int:
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(1):
-        rows = speed_bench.measure(args.quick, args.chunk_mb)
+        rows = [] if args.replay_only else speed_bench.measure(args.quick, args.chunk_mb)
+        rows += speed_bench.replay_throughput(args.replay)
     text = "# bench speed (one process, one BLAS thread)\n\n" + speed_bench.table(rows)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -228,8 +228,8 @@ class ImpulseDetector:
         """
         self.stats.samples += 1
         try:
-            fx, fy, fz = (float(v) for v in specific_force_frd)
-            qw, qx, qy, qz = (float(v) for v in q_frd_ned)
+            fx, fy, fz = map(float, specific_force_frd)
+            qw, qx, qy, qz = map(float, q_frd_ned)
         except (TypeError, ValueError):
             self.stats.rejected += 1
             return []
@@ -241,7 +241,7 @@ class ImpulseDetector:
         p = _NAN3
         if position is not None:
             try:
-                px, py, pz = (float(v) for v in position)
+                px, py, pz = map(float, position)
                 if math.isfinite(px) and math.isfinite(py) and math.isfinite(pz):
                     p = (px, py, pz)
             except (TypeError, ValueError):

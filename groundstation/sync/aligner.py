@@ -74,13 +74,13 @@ def slerp(q0: np.ndarray, q1: np.ndarray, f: float) -> np.ndarray:
     """
     q0 = np.asarray(q0, dtype=float)
     q1 = np.asarray(q1, dtype=float)
-    dot = float(np.dot(q0, q1))
+    dot = float(q0.dot(q1))  # = np.dot for 1-D arrays; this runs once per IMU sample
     if dot < 0.0:  # q and -q are the same rotation: take the short way round
         q1 = -q1
         dot = -dot
     if dot > 0.9995:  # nearly parallel: normalised lerp is exact to ~1e-7 and stable
         q = q0 + f * (q1 - q0)
-        return q / np.linalg.norm(q)
+        return q / math.sqrt(q.dot(q))  # np.linalg.norm of a 1-D vector, without its overhead
     theta = math.acos(min(1.0, dot))
     s = math.sin(theta)
     return (math.sin((1.0 - f) * theta) / s) * q0 + (math.sin(f * theta) / s) * q1
@@ -135,7 +135,8 @@ class PoseBuffer:
         p = np.asarray(position, dtype=float).reshape(3)
         q = np.asarray(quaternion, dtype=float).reshape(4)
         t = int(t_ns) - self.latency_ns
-        if not (np.isfinite(p).all() and np.isfinite(q).all()) or abs(np.dot(q, q) - 1.0) > 2e-3:
+        qq = float(q.dot(q))  # np.dot(q, q); NaN or inf when q is not finite
+        if not (qq <= 3.0 and all(map(math.isfinite, p.tolist()))) or abs(qq - 1.0) > 2e-3:
             self.rejected += 1
             return False
         if self._t and t <= self._t[-1]:
@@ -143,7 +144,7 @@ class PoseBuffer:
             return False
         self._t.append(t)
         self._p.append(p)
-        self._q.append(q / np.linalg.norm(q))
+        self._q.append(q / math.sqrt(qq))  # q / np.linalg.norm(q), the same bits
         if len(self._t) > self.capacity:
             drop = len(self._t) - self.capacity
             del self._t[:drop], self._p[:drop], self._q[:drop]

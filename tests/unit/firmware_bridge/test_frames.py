@@ -12,6 +12,7 @@ from firmware_bridge.frames import (
     AxisConvention,
     AxisError,
     enu_to_ned,
+    motive_pose_to_world,
     motive_to_world,
     ned_to_enu,
     quat_conjugate,
@@ -168,3 +169,24 @@ def test_bad_input_is_named():
         motive_to_world([0, 0, 0], [0, 0, 0, 1], up="Y")
     with pytest.raises(AxisError):
         quat_from_axis_angle([0, 0, 0], 1.0)
+
+
+@pytest.mark.parametrize("up", ["y", "z"])
+@pytest.mark.parametrize("order", ["xyzw", "wxyz"])
+def test_scalar_motive_pose_equals_the_array_version_bit_for_bit(up, order):
+    # oracle: AxisConvention.to_world (numpy); the NatNet decoder runs the scalar one per body
+    rng = np.random.default_rng(0)
+    conv = AxisConvention(up, order)
+    for _ in range(3000):
+        scale = rng.choice([1.0, 1e-3, 1e3, 1e-5])
+        p = tuple(rng.normal(size=3).astype(np.float32).astype(float) * 10)
+        q = tuple((rng.normal(size=4) * scale).astype(np.float32).astype(float))
+        pw, qw = conv.to_world(p, q)
+        got = motive_pose_to_world(p, q, up, order)
+        assert got is not None
+        assert np.array(got[0]).tobytes() == pw.tobytes()
+        assert np.array(got[1]).tobytes() == qw.tobytes()
+    for bad in [(0.0, 0.0, 0.0, 0.0), (np.nan, 0.0, 0.0, 1.0), (np.inf, 0.0, 0.0, 1.0)]:
+        with pytest.raises(AxisError):
+            conv.to_world((0.0, 0.0, 0.0), bad)
+        assert motive_pose_to_world((0.0, 0.0, 0.0), bad, up, order) is None

@@ -231,3 +231,43 @@ def test_encoder_rejects_out_of_range_values():
 
     with pytest.raises(ProtocolError, match="assets"):
         encode_frame_of_data(EXPECTED_41, (4, 0), FrameExtras(assets=(Asset(1),)))
+
+
+def test_bodies_only_fast_path_equals_the_general_parser(monkeypatch):
+    # oracle: the section-by-section parser (fast path disabled) on frames of 0-3 bodies, the
+    # golden frame with every section, and every single-byte corruption and truncation
+    import random
+
+    from firmware_bridge.natnet import parser
+
+    rng = random.Random(0)
+    packets = [_golden_41()]
+    for k in range(40):
+        bodies = tuple(
+            RigidBody(rng.randrange(1, 9), (rng.gauss(0, 2), 1.0, -0.5),
+                      (0.0, 0.6, 0.0, 0.8), 0.001, rng.random() < 0.8)
+            for _ in range(k % 4)
+        )  # fmt: skip
+        frame = FrameOfData(frame_id=k, rigid_bodies=bodies, timestamp_s=k / 200, params=k % 3)
+        packets.append(encode_frame_of_data(frame, (4, 1)))
+    damaged = []
+    for p in packets[:6]:
+        for i in range(len(p)):
+            b = bytearray(p)
+            b[i] ^= 1 << rng.randrange(8)
+            damaged.append(bytes(b))
+        damaged += [p[:n] for n in range(len(p))]
+
+    def parse_all() -> list[str]:
+        out = []
+        for p in packets + damaged:
+            try:
+                out.append(repr(parse_packet(p, (4, 1))))
+            except NatNetParseError as exc:
+                out.append(f"error {exc.message}")
+        return out
+
+    fast = parse_all()
+    monkeypatch.setattr(parser, "_parse_bodies_only", lambda buf, end: None)
+    assert fast == parse_all()
+    assert sum(r.startswith("FrameOfData") for r in fast) > 40
