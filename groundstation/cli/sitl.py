@@ -450,8 +450,14 @@ def _gust_argv(args: argparse.Namespace) -> list[str]:
     return out
 
 
+#: A script that has not finished after this many simulated seconds ends the run (a vehicle stuck
+#: against a structure would otherwise record for ever); scripts take 30-200 s.
+SCRIPT_LIMIT_S = 600.0
+
+
 def _stop_after_script(args: argparse.Namespace, sim: Simulation):
-    """Stop rule without a duration: a script ends 2 s (simulated) after it is done."""
+    """Stop rule without a duration: a script ends 2 s (simulated) after it is done, or at
+    :data:`SCRIPT_LIMIT_S` if it never finishes (said on stderr)."""
     script_end: list[float] = []
 
     def stop() -> bool:
@@ -460,6 +466,14 @@ def _stop_after_script(args: argparse.Namespace, sim: Simulation):
                 if not script_end:
                     script_end.append(sim.vehicle.t)
                 return sim.vehicle.t > script_end[0] + 2.0
+            if sim.vehicle.t > SCRIPT_LIMIT_S:
+                print(
+                    f"sitl: warning: {args.pilot} did not finish within {SCRIPT_LIMIT_S:.0f} s "
+                    "of simulated time (the vehicle may be stuck); stopping there",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                return True
         return False
 
     return stop
