@@ -163,3 +163,24 @@ def test_cli_refuses_overlapping_seeds_and_unknown_engines(tmp_path):
         cli_bench.run_detector(args())
     with pytest.raises(db.BenchDataError, match="unknown engines"):
         cli_bench.run_detector(args(engines="bullet"))
+
+
+def test_bench_detector_sees_the_events_replay_publishes():
+    """``bench detector`` labels exactly the events ``groundstation replay`` publishes on the same
+    log with the same settings: same number, same order, same p_false and rejections."""
+    from groundstation.cli.replay import _resolve
+    from groundstation.pipeline.offline import detect_offline
+
+    log = LOGS / "wall_slow_touch_gusts.mcap"
+    args = argparse.Namespace(config=None, set=[], quiet=True)
+    cfg = _resolve(log, args).config  # what replay runs: the recorded settings as the base
+    labelled, _, _ = db.detect_and_label(str(log), "simple", None, ())
+    replayed = [
+        e.payload
+        for e in detect_offline(str(log), cfg).events
+        if e.payload["state"] in ("end", "rejected")
+    ]
+    assert len(labelled) == len(replayed) > 0
+    for lab, ev in zip(labelled, replayed, strict=True):
+        assert lab.rejected == (ev["state"] == "rejected")
+        assert lab.p_false == pytest.approx(float(ev["p_false"]), abs=1e-12)
