@@ -33,11 +33,6 @@ start of the session), subscribes, reads from the recording every sample between
 checkpoint and the first one it receives live (:mod:`groundstation.runtime.catchup`), runs them
 through the stage, and publishes only the outputs beyond the counter: every contact event and
 observation comes out exactly once, with the ids a detector that never died would have given.
-The counter advances when an output is handed to ZeroMQ, which sends it from a background
-thread: a SIGKILL can lose the last few messages still queued there. So outputs the counter
-says were published are also looked up in the recording (written since the checkpoint, read
-after ``_RECORDER_GRACE_S`` for the recorder to write what it had received): those missing
-from it are published again (``catchup.republished``).
 Samples that neither the recording nor the live stream hold are counted (``catchup.lost``).
 Ids therefore start at ``--first-id`` (0) in every live session as in a replay; ``auto`` (the
 wall clock) remains for a detector without recording.
@@ -51,7 +46,6 @@ import os
 import pickle
 import sys
 import time
-import warnings
 from collections.abc import Sequence
 
 import zmq
@@ -76,14 +70,6 @@ DETECTOR_FINISHED = "detector finished"
 CHECKPOINT_FILE = "detector.ckpt"
 PUBLISHED_FILE = "detector.published"
 _CHECKPOINT_NS = 1_000_000_000
-#: Before looking up its outputs in the recording, a restarted detector gives the recorder this
-#: long to write what it had received from the killed one.
-_RECORDER_GRACE_S = 1.0
-
-
-def output_key(env: Envelope) -> tuple:
-    """What identifies one detector output in the recording: topic, id, event state."""
-    return (env.topic, int(env.payload["id"]), env.payload.get("state"))
 
 
 class PublishedCounter:
@@ -139,8 +125,6 @@ class DetectorProcess(Worker):
         self.suppressed = 0
         self._published: PublishedCounter | None = None
         self._limit = {"observations": 0, "contact.event": 0}
-        self._recorded: set[tuple] | None = None  # outputs found in the recording at a resume
-        self.republished = 0
         self._next_checkpoint = 0
         self._dirty = False
 
@@ -200,7 +184,6 @@ class DetectorProcess(Worker):
         self._limit = self._published.get()
         plan = GapPlan(self.consumed)
         since = None if self.last_recv_ns is None else self.last_recv_ns - 2_000_000_000
-        self._recorded = self._recorded_outputs(since)
         self.state = "catching up"
         self.publish_status()
         res = catch_up(self.recording, INPUT_TOPICS, plan, self.sub.recv, since_ns=since,
@@ -217,7 +200,6 @@ class DetectorProcess(Worker):
             "reads": res.reads,
             "seconds": round(res.waited_s, 3),
             "error": res.error,
-            "republished": self.republished,
         }
         lost = f"; {sum(res.lost.values())} sample(s) lost: {res.lost}" if res.lost else ""
         err = f"; recording unreadable: {res.error}" if res.error else ""
@@ -225,33 +207,9 @@ class DetectorProcess(Worker):
             "warning" if (res.lost or res.error) else "info",
             f"resumed {'from its checkpoint' if ck else 'from the session start'}: "
             f"{len(res.recorded)} recorded sample(s) caught up in {res.waited_s:.1f} s, "
-            f"{self.suppressed} output(s) already published skipped, {self.republished} "
-            f"published again (never reached the recording){lost}{err}",
+            f"{self.suppressed} output(s) already published skipped{lost}{err}",
         )
         self.state = "running"
-
-    def _recorded_outputs(self, since_ns: int | None) -> set[tuple] | None:
-        """Keys of the observations and contact events in the recording from ``since_ns`` (log
-        time, a margin before the checkpoint) on; None when it cannot be read (the counter
-        alone then decides)."""
-        from groundstation.acquisition.segments import GrowingSession
-        from groundstation.bus.envelope import from_bytes
-
-        time.sleep(_RECORDER_GRACE_S)
-        start = None if since_ns is None else max(0, since_ns - 3_000_000_000)
-        keys: set[tuple] = set()
-        try:
-            with warnings.catch_warnings(), GrowingSession(self.recording) as grow:
-                warnings.simplefilter("ignore")  # the open segment reads as truncated
-                for m in grow.session().messages(["observations", "contact.event"], start):
-                    try:
-                        keys.add(output_key(from_bytes(m.data)))
-                    except Exception:  # noqa: BLE001 - a damaged message: not recorded
-                        continue
-        except Exception as exc:  # noqa: BLE001 - unreadable: trust the counter
-            self.log("warning", f"cannot read {self.recording} to check outputs: {exc}")
-            return None
-        return keys
 
     def _catching_up(self) -> None:
         """During the catch-up: the status says so once a second."""
@@ -263,10 +221,8 @@ class DetectorProcess(Worker):
         for env in outs:
             seq = int(env.header.seq)
             if seq < self._limit.get(env.topic, 0):
-                if self._recorded is None or output_key(env) in self._recorded:
-                    self.suppressed += 1  # the previous incarnation published it
-                    continue
-                self.republished += 1  # counted, but lost in the killed process's queue
+                self.suppressed += 1  # the previous incarnation published it
+                continue
             self.pub.publish(env.topic, env.payload, env.arrays, source_ns=env.header.source_ns)
             self.rates.add(env.topic)
             if self._published is not None:
