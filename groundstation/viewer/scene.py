@@ -500,6 +500,19 @@ class ViewModel:
         """Observations flagged as false positives in the latest fit."""
         return int(np.count_nonzero(self._fit_flags & FLAG_FALSE_POSITIVE))
 
+    def fit_covers(self, fit_index: int) -> bool:
+        """True when the latest ``mapper.fit`` is at least ``fit_index`` and every id it lists
+        has its observation here (or the ring has evicted points, so absence proves nothing).
+
+        The mapper publishes ``mesh`` before ``mapper.fit`` and observations travel on other
+        sockets, so a mesh can arrive before the fit and the points it was made from.
+        """
+        if self.fit_index is None or self.fit_index < int(fit_index):
+            return False
+        if self.observations_dropped or not self._fit_ids.size:
+            return True
+        return bool(np.isin(self._fit_ids, self._obs_id[: self._n_obs]).all())
+
     def event_counts(self) -> tuple[int, int | None]:
         """(contact events, events the latest fit flags or None before a fit), counted as the
         status line counts them (module docstring)."""

@@ -39,17 +39,21 @@ def publish_mesh(pub: Publisher, fit: int, radius: float = 0.6, bad: bool = Fals
     return m.vertices.shape[0]
 
 
-def publish_state(pub: Publisher, n_obs: int, fit: int, poses: range) -> None:
-    for i, x in enumerate(contact_points(n_obs)):
-        pub.publish(
-            "observations", {"id": i, "label": 0}, {"x_m": x, "normal": np.array([0, 0, 1.0])}
-        )
+def publish_fit(pub: Publisher, n_obs: int, fit: int) -> None:
     ids = np.arange(n_obs, dtype=np.int64)
     pub.publish(
         "mapper.fit",
         {"fit_index": fit},
         {"ids": ids, "u": np.ones(n_obs), "flags": (ids % 5 == 0).astype(np.uint8)},
     )
+
+
+def publish_state(pub: Publisher, n_obs: int, fit: int, poses: range) -> None:
+    for i, x in enumerate(contact_points(n_obs)):
+        pub.publish(
+            "observations", {"id": i, "label": 0}, {"x_m": x, "normal": np.array([0, 0, 1.0])}
+        )
+    publish_fit(pub, n_obs, fit)
     for k in poses:
         t, p, q = circle_pose(k)
         pub.publish("samples.pose", {"body_id": 1, "valid": True}, {"position_m": p, "q_wxyz": q},
@@ -120,14 +124,52 @@ def test_every_nth_mesh_and_the_latest_on_exit(tmp_path, zctx):
         publish_state(pub, 10, fit=1, poses=range(10))
         for fit in range(1, 6):
             publish_mesh(pub, fit)
+            publish_fit(pub, 10, fit)  # after its mesh, as the mapper publishes them
             # one mesh at a time, as a mapper does (the mesh topic keeps only a few)
-            while proc.model.meshes_received < fit:
+            while proc.model.meshes_received < fit or proc.settling:
                 assert proc.step()
         proc.stop = True
         assert proc.run() == 0  # flushes the latest mesh skipped by --every
     pngs = sorted(p.name for p in tmp_path.glob("snapshot_*.png"))
     assert pngs == ["snapshot_000001.png", "snapshot_000004.png", "snapshot_000005.png"]
     assert proc.snapshots == 3 and proc.bad_messages == 0
+
+
+def test_a_snapshot_waits_for_its_fit_and_points_then_settles(tmp_path, zctx):
+    """The mapper publishes a mesh before its fit, and points come on other sockets: the files
+    for a mesh wait (up to ``settle_s``) until that fit and its points are in."""
+    import open3d as o3d
+
+    now = [0]
+    with Publisher(topics=VIEW_TOPICS, context=zctx, linger_ms=0) as pub:
+        sink = HeadlessSink(tmp_path, width=200, height=150, backend="matplotlib")
+        proc = ViewerProcess(
+            pub.endpoints, sink, context=zctx, log=lambda s: None, settle_s=1.0,
+            clock=lambda: now[0],
+        )  # fmt: skip
+        pub.wait_for_subscribers(1, timeout_s=10)
+        publish_mesh(pub, fit=1)
+        while proc.model.meshes_received < 1:
+            assert proc.step()
+        for _ in range(5):
+            assert proc.step()
+        assert proc.snapshots == 0  # the fit and its points are not in yet
+        publish_state(pub, 25, fit=1, poses=range(10))
+        while proc.snapshots == 0:
+            assert proc.step()
+        assert proc.model.fit_index == 1
+        points = o3d.io.read_point_cloud(str(tmp_path / "points_000001.ply")).points
+        assert len(points) == 25
+        # a fit that never comes: the files are written once settle_s has passed
+        publish_mesh(pub, fit=2)
+        while proc.model.meshes_received < 2:
+            assert proc.step()
+        assert proc.step() and proc.snapshots == 1
+        now[0] += 1_000_000_001
+        assert proc.step() and proc.snapshots == 2
+        proc.stop = True
+        assert proc.run() == 0
+    assert proc.snapshots == 2  # nothing written twice on exit
 
 
 @pytest.mark.timeout(60)
@@ -143,7 +185,9 @@ def test_sink_failures_are_logged_and_survived_or_end_the_viewer_alone(tmp_path,
     with Publisher(topics=VIEW_TOPICS, context=zctx, linger_ms=0) as pub:
         # headless: the output folder disappears -> logged, the loop goes on, later meshes land
         sink = HeadlessSink(out, width=200, height=150, backend="matplotlib")
-        proc = ViewerProcess(pub.endpoints, sink, context=zctx, log=logs.append, max_snapshots=1)
+        proc = ViewerProcess(
+            pub.endpoints, sink, context=zctx, log=logs.append, max_snapshots=1, settle_s=0
+        )
         pub.wait_for_subscribers(1, timeout_s=10)
         shutil.rmtree(out)
         publish_mesh(pub, fit=1)

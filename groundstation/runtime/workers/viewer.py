@@ -53,6 +53,9 @@ class ViewerProcess:
         Window frame rate.
     max_snapshots : int, optional
         Headless: stop after this many snapshot sets (None: run until stopped).
+    settle_s : float
+        Headless: after a mesh, wait up to this long for its ``mapper.fit`` and the points
+        that fit lists (they travel on other sockets) so the files show one consistent fit.
     stop : object with ``__bool__``
         Stop flag checked every loop (e.g. ``StopSignals``).
     log : callable
@@ -77,6 +80,7 @@ class ViewerProcess:
         context: Any = None,
         clock: Callable[[], int] = time.monotonic_ns,
         max_sink_failures: int = 5,
+        settle_s: float = 2.0,
     ):
         from groundstation.bus.pubsub import Subscriber
 
@@ -90,6 +94,8 @@ class ViewerProcess:
         self.log = log
         self.clock = clock
         self.max_sink_failures = max_sink_failures
+        self.settle_ns = int(max(0.0, float(settle_s)) * 1e9)
+        self._pending_since: int | None = None
         self.sub = Subscriber(
             list(endpoints), VIEW_TOPICS, server_public_key=server_public_key, context=context
         )
@@ -147,11 +153,27 @@ class ViewerProcess:
         self._seen_mesh_version = v
         return (self.model.meshes_received - 1) % self.every == 0
 
+    @property
+    def settling(self) -> bool:
+        """Headless: a due mesh waits for its fit and points (see ``settle_s``)."""
+        return self._pending_since is not None
+
+    def _settled(self) -> bool:
+        """A due mesh may be written: its fit and points are in, or ``settle_s`` has passed."""
+        mesh = self.model.mesh
+        if mesh is None or self._pending_since is None:
+            return True
+        if self.model.fit_covers(mesh.fit_index):
+            return True
+        return self.clock() - self._pending_since >= self.settle_ns
+
     def _write(self) -> None:
+        self._pending_since = None
         try:
             self.sink.write(self.model.scene(self.clock()))
             self.snapshots += 1
             self._written_mesh_version = self.model.mesh_version
+            self._seen_mesh_version = self.model.mesh_version
             self.sink_failures = 0
         except Exception as exc:  # noqa: BLE001 - a sink failure must not end the loop
             self.sink_failures += 1
@@ -170,8 +192,10 @@ class ViewerProcess:
     def step(self) -> bool:
         """One loop iteration (pump, then files or a frame); False when the loop should end."""
         if self.headless:
-            self.pump(timeout_ms=100)
-            if self._due_for_files():
+            self.pump(timeout_ms=20 if self._pending_since is not None else 100)
+            if self._pending_since is None and self._due_for_files():
+                self._pending_since = self.clock()
+            if self._pending_since is not None and self._settled():
                 self._write()
                 if self.max_snapshots and self.snapshots >= self.max_snapshots:
                     return False
