@@ -137,8 +137,17 @@ class ObservationSet3D:
         pf = np.full(len(self.y), np.nan) if p_false is None else p_false
         sig = self.placement_m
         return [
-            Observation(int(i), int(t), x, float(y), n, int(e), 0.0, p_false=float(p),
-                        sigma_m=sig if y <= 0 else math.nan)  # fmt: skip
+            Observation(
+                int(i),
+                int(t),
+                x,
+                float(y),
+                n,
+                int(e),
+                0.0,
+                p_false=float(p),
+                sigma_m=sig if y <= 0 else math.nan,
+            )
             for i, t, x, y, n, e, p in zip(
                 self.ids, self.t_ns, self.X, self.y, nrm, ev, pf, strict=True
             )
