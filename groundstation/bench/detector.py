@@ -348,7 +348,9 @@ def _inputs(ev: LabelledEvent) -> dict[str, float] | None:
     if not ev.features:
         return None
     try:
-        f = ImpulseFeatures(**{k: float(v) for k, v in ev.features.items()})
+        f = ImpulseFeatures(
+            **{k: math.nan if v is None else float(v) for k, v in ev.features.items()}
+        )
     except TypeError:
         return None
     return model_inputs(f)

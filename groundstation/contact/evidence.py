@@ -80,8 +80,11 @@ class ImpulseFeatures:
         """The normal velocity reversed: approaching before, moving away after."""
         return self.has_mocap and self.approach_mps > 0.05 and self.rebound_mps > 0.02
 
-    def as_dict(self) -> dict[str, float]:
-        return {k: float(v) for k, v in dataclasses.asdict(self).items()}
+    def as_dict(self) -> dict[str, float | None]:
+        """The features by name, JSON-ready: None where not measurable (NaN: no mocap)."""
+        return {
+            k: float(v) if math.isfinite(v) else None for k, v in dataclasses.asdict(self).items()
+        }
 
 
 def model_inputs(f: ImpulseFeatures) -> dict[str, float]:

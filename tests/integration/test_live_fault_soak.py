@@ -14,7 +14,8 @@ Measured and written to ``GS_SOAK_OUT`` (default ``<tmp>/fault_soak.json``):
 - **the map rebuilt**: each mapper incarnation that published a mesh;
 - **the status line showed each restart**: ``NAME RESTARTING (restart k)`` or ``NAME RESTARTED
   xk`` for every k;
-- **no orphans**: processes of the session 2 s after SIGKILL of ``live``.
+- **no orphans**: processes of the session 2 s after SIGKILL of ``live``;
+- **no crashes**: no worker exits on its own (a crash among the kills would pass for one).
 
 ``GS_SOAK_DIR`` keeps the artefacts in that folder.
 """
@@ -106,6 +107,7 @@ def test_fault_injection_soak(tmp_path):
     out.write_text(json.dumps(result, indent=1) + "\n")
     print("\n" + json.dumps({k: v for k, v in result.items() if k != "kills"}, indent=1))
     assert left == {}, left
+    assert result["worker_crashes"] == [], result["worker_crashes"]
     assert result["contact_events"]["duplicates"] == 0 and result["contact_events"]["holes"] == 0
     assert result["detector_catchup_lost"] == 0
     assert result["status_restarts_missing"] == {}, result["status_restarts_missing"]
@@ -168,6 +170,8 @@ def analyse(tmp: Path, run, kills: list[dict]) -> dict:
         if len(seen) < n:
             missing[w] = n - len(seen)
     resumes = [m for m in logs if m.startswith("resumed ")]
+    # a worker that exits on its own (not one of our SIGKILLs) is a crash the kills hid
+    crashes = re.findall(r"^(\w+) exited (?!-9\b)(-?\d+)", run.err.read_text(), re.M)
     lost_catchup = sum(int(x) for m in resumes for x in re.findall(r"(\d+) sample\(s\) lost", m))
     mapper_kills = [k["t_ns"] for k in done if k["worker"] == "mapper"]
     incarnations = {o for _, o, _ in meshes}
@@ -202,6 +206,7 @@ def analyse(tmp: Path, run, kills: list[dict]) -> dict:
             "incarnations_with_mesh": len(incarnations),
         },  # fmt: skip
         "status_restarts_missing": missing,
+        "worker_crashes": [f"{w} exited {rc}" for w, rc in crashes],
         "status_lines": len(lines),
         "kills": [{k: v for k, v in d.items() if k != "t_ns"} for d in kills],
     }

@@ -52,6 +52,7 @@ import zmq
 
 from groundstation.acquisition.replay import FINISHED
 from groundstation.bus.envelope import Envelope
+from groundstation.bus.errors import EnvelopeError
 from groundstation.bus.pubsub import Subscriber
 from groundstation.config import Config
 from groundstation.contact.stage import INPUT_TOPICS, ContactStage
@@ -127,6 +128,8 @@ class DetectorProcess(Worker):
         self._limit = {"observations": 0, "contact.event": 0}
         self._next_checkpoint = 0
         self._dirty = False
+        self._consistent = True
+        self.unpublishable = 0
 
     # -- files ---------------------------------------------------------------------------------
     def _path(self, filename: str) -> str:
@@ -147,7 +150,7 @@ class DetectorProcess(Worker):
 
     def checkpoint(self) -> None:
         """Write the stage and the consumed positions (atomically)."""
-        if self.recording is None or not self._dirty:
+        if self.recording is None or not self._dirty or not self._consistent:
             return
         path = self._path(CHECKPOINT_FILE)
         state = {"stage": self.stage, "consumed": self.consumed, "recv_ns": self.last_recv_ns}
@@ -223,17 +226,28 @@ class DetectorProcess(Worker):
             if seq < self._limit.get(env.topic, 0):
                 self.suppressed += 1  # the previous incarnation published it
                 continue
-            self.pub.publish(env.topic, env.payload, env.arrays, source_ns=env.header.source_ns)
-            self.rates.add(env.topic)
+            try:
+                self.pub.publish(env.topic, env.payload, env.arrays, source_ns=env.header.source_ns)
+            except EnvelopeError as exc:
+                # a stage output the bus refuses is a bug: named, counted, and the loop goes
+                # on (a crash would restart into the same output and drop the rest with it)
+                self.unpublishable += 1
+                self.log("error", f"{env.topic} #{seq} not published: {exc}")
+            else:
+                self.rates.add(env.topic)
             if self._published is not None:
                 self._published.advance(env.topic, seq)
 
     def _push(self, env: Envelope) -> None:
+        # until the stage's outputs are all out, its state must not be checkpointed: a restart
+        # from that state would never produce them again
+        self._consistent = False
         self._publish(self.stage.push(env))
         self.consumed[stream_key(env)] = int(env.header.seq)
         if env.header.recv_ns:
             self.last_recv_ns = int(env.header.recv_ns)
         self._dirty = True
+        self._consistent = True
 
     def handle(self, env: Envelope) -> None:
         """One message from the bus: a sample for the stage, or the replay's end marker."""
@@ -258,6 +272,7 @@ class DetectorProcess(Worker):
             "gaps": {} if sub is None else {t: s.gaps for t, s in sub.stats.items()},
             "received": {} if sub is None else {t: s.received for t, s in sub.stats.items()},
             "bad_messages": 0 if sub is None else sub.bad_messages,
+            "unpublishable": self.unpublishable,
         }
 
     def step(self, timeout_ms: int = 100) -> bool:

@@ -186,3 +186,20 @@ def test_first_id_auto_numbers_after_any_earlier_incarnation():
         first_id("-1")
     with pytest.raises(argparse.ArgumentTypeError):
         first_id("soon")
+
+
+def test_events_without_mocap_encode_for_the_bus():
+    """With the mocap gone (a restart, tracking loss) the evidence features that need it are
+    not measurable: the event goes out with them as null, never as NaN the bus refuses (a live
+    detector crashed on exactly that)."""
+    from groundstation.bus.envelope import from_bytes, to_bytes
+
+    imu, att, _ = streams(duration_s=5.0)
+    out, st = run(interleave([imu, att], random.Random(4)), max_wait_s=0.25)
+    events = [e for e in out if e.topic == "contact.event"]
+    assert events and st.stats.no_pose == st.stats.imu
+    for e in out:
+        back = from_bytes(to_bytes(e))  # to_bytes raises on a NaN payload
+        assert back.payload == e.payload
+    feats = [e.payload["features"] for e in events if "features" in e.payload]
+    assert feats and all(f["approach_mps"] is None and f["peak_g"] > 1.0 for f in feats)
