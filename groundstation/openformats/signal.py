@@ -79,6 +79,12 @@ class DetectorSignal:
         self.skipped = 0  # IMU samples with no attitude, out of order or not finite
 
     @property
+    def is_score(self) -> bool:
+        """The signal is the impulse detector's trigger score (unitless, trigger at 1), not a
+        filtered |a| in G."""
+        return self._impulse is not None
+
+    @property
     def threshold_g(self) -> float:
         """The trigger level of the signal (impulse: 1, the score's scale; threshold: a0, G)."""
         return 1.0 if self._impulse is not None else float(self.contact.threshold_g)

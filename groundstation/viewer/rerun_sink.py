@@ -64,7 +64,7 @@ def blueprint():
         rrb.Horizontal(
             rrb.Spatial3DView(origin="world", name="map"),
             rrb.Vertical(
-                rrb.TimeSeriesView(origin="signal", name="detector signal (G)"),
+                rrb.TimeSeriesView(origin="signal", name="detector signal"),
                 rrb.TextLogView(origin="log", name="log"),
             ),
             column_shares=[3, 2],
@@ -120,9 +120,10 @@ class RerunLogger:
             vectors=np.eye(3) * 0.3, colors=[[230, 40, 40], [40, 200, 40], [40, 90, 230]]
         )
         self.rr.log("world/vehicle/axes", triad, static=True, recording=self.rec)
+        impulse = self.signal.is_score
         series = (
-            ("signal/accel_g", [40, 40, 40], "filtered |a|"),
-            ("signal/threshold_g", [214, 39, 40], "threshold a0"),
+            ("signal/accel_g", [40, 40, 40], "trigger score" if impulse else "filtered |a| (G)"),
+            ("signal/threshold_g", [214, 39, 40], "trigger (1)" if impulse else "threshold a0"),
         )
         for path, color, name in series:
             style = self.rr.SeriesLines(colors=[color], names=[name])
@@ -152,6 +153,9 @@ class RerunLogger:
         """Log one bus message; malformed ones are counted in :attr:`bad` and skipped."""
         self.messages += 1
         try:
+            # bus arrays are zero-copy views into the message, at any byte offset; Rerun hands
+            # numpy buffers to Arrow, which panics (and ends the viewer) on a misaligned one
+            arrays = {k: np.require(v, requirements="A") for k, v in arrays.items()}
             self._dispatch(topic, payload, arrays, int(source_ns), int(recv_ns))
         except (KeyError, ValueError, TypeError, IndexError):
             self.bad += 1

@@ -118,12 +118,7 @@ def test_replay_serves_the_web_viewer_on_loopback_and_the_page_shows_the_mesh(tm
     _rrd_ok(rrd)
 
 
-@pytest.mark.soak  # about 6 minutes of live session and browser polling
-@pytest.mark.xfail(
-    reason="after the runtime and open-formats merge the live Rerun page shows no mesh within "
-    "300 s although the status line counts meshes (fresh-clone CI, 2026-11-23); open",
-    strict=False,
-)
+@pytest.mark.soak  # a few minutes of live session and browser polling
 def test_live_web_view_and_the_live_recording_in_foxglove_schemas(tmp_path):
     """``live --viewer rerun --record`` against the SITL until the first meshes: the page shows
     the mesh, and the recording's Foxglove channels decode with the schema library alone."""
