@@ -221,6 +221,7 @@ def write_outputs(
         settings_toml=to_toml(config),
         command=command,
         window_s=window_s,
+        score=replay_output.translator.signal.is_score,
     )
     report["report_html"] = "report.html"
     write_report(report, out / "report.json")

@@ -4,10 +4,10 @@ Sections, top to bottom:
 
 1. **Summary**: the log, window, duration, contacts (events, as the status line counts them)
    and how many the map flags, refits, and the truth scores when the log carries ground truth.
-2. **Detector signal**: the filtered |a| (G) the detector thresholds, against the threshold a0
-   and the release level, over log time; every contact event shaded from begin to end in its
-   state's colour (green trusted, magenta flagged, grey pending) and numbered; true contacts
-   (``truth.json``) ticked along the bottom by kind.
+2. **Detector signal**: the impulse detector's trigger score (or, with the threshold detector,
+   the filtered |a| in G) against its trigger and release levels, over log time; every contact
+   event shaded from begin to end in its state's colour (green trusted, magenta flagged, grey
+   pending) and numbered; true contacts (``truth.json``) ticked along the bottom by kind.
 3. **Map**: the final mesh, contact points by state and the flown path from three sides (top,
    front, side) with metre axes, the true structure outlined in dashed red when the log has
    ground truth (the same renderer as every snapshot, ``viewer.headless.render_matplotlib``).
@@ -145,6 +145,7 @@ def signal_figure(
     t0_ns: int,
     width: int = 1100,
     height: int = 340,
+    score: bool = False,
 ) -> Any:
     """The signal plot (module docstring, section 2) as a matplotlib figure."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -161,9 +162,11 @@ def signal_figure(
                    alpha=0.35, lw=0)  # fmt: skip
     if t_s.size:
         x, y = _envelope(t_s, g, 3000)
-        ax.plot(x, y, color="k", lw=0.6, label="filtered |a|")
-    ax.axhline(threshold_g, color="#d62728", ls="--", lw=1, label=f"threshold {threshold_g:g} G")
-    ax.axhline(release_g, color="#ff7f0e", ls=":", lw=1, label=f"release {release_g:.3g} G")
+        ax.plot(x, y, color="k", lw=0.6, label="trigger score" if score else "filtered |a|")
+    unit = "" if score else " G"
+    ax.axhline(threshold_g, color="#d62728", ls="--", lw=1,
+               label=f"{'trigger' if score else 'threshold'} {threshold_g:g}{unit}")  # fmt: skip
+    ax.axhline(release_g, color="#ff7f0e", ls=":", lw=1, label=f"release {release_g:.3g}{unit}")
     top = max([threshold_g * 1.3] + ([float(np.max(g))] if g.size else []))
     ax.set_ylim(0, top * 1.12)
     for r in rows:
@@ -178,7 +181,7 @@ def signal_figure(
             ax.plot([ts, ts], [0, top * 0.06], color=color, lw=2)
             kinds.add(c["kind"])
     ax.set_xlabel("log time (s from the start of the recording)", fontsize=8)
-    ax.set_ylabel("|a| (G)", fontsize=8)
+    ax.set_ylabel("trigger score" if score else "|a| (G)", fontsize=8)
     ax.tick_params(labelsize=7)
     ax.grid(True, color="0.9", lw=0.5)
     if t_s.size:
@@ -249,6 +252,7 @@ def render_html(
     command: str,
     has_truth: bool,
     has_p_false: bool,
+    score: bool = False,
 ) -> str:
     """The page (module docstring); images are ``data:`` URIs."""
     esc = html.escape
@@ -265,8 +269,14 @@ def render_html(
     parts.append("</table>")
     parts += [
         '<h2 id="signal">Detector signal</h2>',
-        "<p>Filtered |a| (gravity removed, world frame) that the detector compares with the "
-        "threshold; each contact event is shaded from begin to end in the map's verdict "
+        (
+            "<p>The impulse detector's trigger score (the impulse residual over its trigger "
+            "levels: an event opens above 1)"
+            if score
+            else "<p>Filtered |a| (gravity removed, world frame) that the detector compares with "
+            "the threshold"
+        )
+        + "; each contact event is shaded from begin to end in the map's verdict "
         "(green trusted, magenta flagged, grey pending) and numbered"
         + ("; true contacts are ticked along the bottom by kind" if has_truth else "")
         + ".</p>",
@@ -323,6 +333,7 @@ def write_report_html(
     settings_toml: str,
     command: str,
     window_s: tuple[float | None, float | None] = (None, None),
+    score: bool = False,
 ) -> Path:
     """Write ``report.html`` for one pipeline run (module docstring).
 
@@ -337,6 +348,7 @@ def write_report_html(
     settings_toml : every setting of the run (``config.to_toml``)
     command : the command line
     window_s : the replayed window, seconds from the log start
+    score : the signal is the impulse detector's trigger score (unitless, trigger at 1)
     """
     from groundstation.viewer.headless import render_matplotlib
 
@@ -345,7 +357,7 @@ def write_report_html(
     t_ns, g = signal
     t_s = (np.asarray(t_ns, dtype=np.int64) - result.start_ns) / 1e9
     sig_fig = signal_figure(t_s, np.asarray(g, float), threshold_g, release_g, rows, truth,
-                            result.start_ns)  # fmt: skip
+                            result.start_ns, score=score)  # fmt: skip
     buf = io.BytesIO()
     outline = (truth or {}).get("scene", {}).get("objects", []) if truth else []
     render_matplotlib(map_scene(result, trajectory), buf, 1100, 825, outline)
@@ -383,6 +395,7 @@ def write_report_html(
         command=command,
         has_truth=bool(truth and truth.get("contacts") is not None),
         has_p_false=any(r.p_false is not None for r in rows),
+        score=score,
     )
     path = Path(path)
     path.write_text(page, encoding="utf-8")

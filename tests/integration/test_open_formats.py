@@ -150,6 +150,7 @@ def test_report_html_renders_offline_in_headless_chromium(replayed, tmp_path):
     d = replayed["wall_survey"]
     html = (d / "report.html").read_text()
     assert "http://" not in html and "https://" not in html and "<script" not in html
+    assert "trigger score" in html  # the default (impulse) detector's signal, named as such
     report = json.loads((d / "report.json").read_text())
     requests: list[str] = []
     with browser_page(1200, 900) as page:
