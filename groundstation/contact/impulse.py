@@ -21,9 +21,11 @@ baselines look only backwards, so a strong impulse cannot echo into the samples 
 
 Events
 ------
-A candidate opens when ``s > 1`` (armed: warmed up, refractory over). The baseline of the opening
-sample is frozen, and the candidate lasts while ``m`` stays ``release_ratio`` above it; a push
-longer than ``max_event_s`` is cut there. At the close, the impulse is integrated in the world frame
+A candidate opens when ``s > 1`` (armed: warmed up, refractory over; within the refractory an
+impulse stronger than the one that just ended opens one too: its ringing cannot outgrow it, but a
+gust can push the vehicle into a wall right after, and that impact's onset is the contact). The
+baseline of the opening sample is frozen, and the candidate lasts while ``m`` stays
+``release_ratio`` above it; a push longer than ``max_event_s`` is cut there. At the close, the impulse is integrated in the world frame
 (its direction is the outward normal ``n``; friction tilts it on oblique touches), its onset found
 by walking back from the peak to 15 % of it, and once ``evidence_window_s`` more of data has
 arrived the evidence of :mod:`groundstation.contact.evidence` is measured (duration, impulse, mocap
@@ -198,6 +200,7 @@ class ImpulseDetector:
         self._open: _Open | None = None
         self._closed: list[_Closed] = []
         self._refractory_until = -(2**62)
+        self._refractory_peak = math.inf  # peak score of the impulse that set the refractory
         self._last_event_end = -(2**62)
         self._last_external_t = -(2**62)
         self._last_external_pos: list[float] | None = None
@@ -355,7 +358,8 @@ class ImpulseDetector:
             ti = int(t[k])
             ev = self._open
             if ev is None:
-                if warm[k] and ti >= self._refractory_until and score[k] > 1.0:
+                rearmed = ti >= self._refractory_until or score[k] > self._refractory_peak
+                if warm[k] and rearmed and score[k] > 1.0:
                     self._open = _Open(i + c.base, base[k].copy(), float(score[k]))
                     self.stats.contacts += 1
                 elif ti - self._last_event_end >= self._quiet_ns:
@@ -482,6 +486,7 @@ class ImpulseDetector:
         )
         t_close = int(c.t[close_row])
         self._refractory_until = t_close + int(self.settings.refractory_s * 1e9)
+        self._refractory_peak = ev.peak_score
         self._last_event_end = t_close
 
     def _evidence(self, cl: _Closed) -> list[Observation]:

@@ -76,7 +76,8 @@ class ContactSettings:
     release_ratio : float
         Hysteresis: a contact ends when |a| falls below ``release_ratio * threshold_g``.
     refractory_s : float
-        After a contact ends, no new contact starts for this long (one bump, one event).
+        After a contact ends, no new contact starts for this long (one bump, one event) unless
+        its trigger score exceeds the ended one's peak (impulse detector).
     contact_rate_hz : float
         Contact observations are emitted at most at this rate while in contact (paper: 25 Hz).
     external_rate_hz : float
