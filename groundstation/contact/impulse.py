@@ -25,9 +25,10 @@ A candidate opens when ``s > 1`` (armed: warmed up, refractory over; within the 
 impulse stronger than the one that just ended opens one too: its ringing cannot outgrow it, but a
 gust can push the vehicle into a wall right after, and that impact's onset is the contact). The
 baseline of the opening sample is frozen, and the candidate lasts while ``m`` stays
-``release_ratio`` above it; a push longer than ``max_event_s`` is cut there. At the close, the impulse is integrated in the world frame
-(its direction is the outward normal ``n``; friction tilts it on oblique touches), its onset found
-by walking back from the peak to 15 % of it, and once ``evidence_window_s`` more of data has
+``release_ratio`` above it; a push longer than ``max_event_s`` is cut there. At the close, the
+impulse is integrated in the world frame (its direction is the outward normal ``n``; friction
+tilts it on oblique touches), its onset found by walking back from the peak to 15 % of it, and
+once ``evidence_window_s`` more of data has
 arrived the evidence of :mod:`groundstation.contact.evidence` is measured (duration, impulse, mocap
 approach and rebound speeds, their agreement with the IMU) and
 :class:`~groundstation.contact.evidence.EvidenceModel` turns it into ``p_false``.

@@ -44,6 +44,7 @@ def detected_events(result: PipelineResult) -> list[DetectedEvent]:
 def build_report(result: PipelineResult, *, scored: bool = True) -> dict:
     """Every report key of ``groundstation replay`` (truth metrics when the log has truth)."""
     fits = result.fits
+    refit_s = [f.timings["total_s"] for f in fits if "total_s" in f.timings]
     minutes = result.duration_s / 60.0
     rep: dict = {
         "log": result.log_path,
@@ -56,6 +57,8 @@ def build_report(result: PipelineResult, *, scored: bool = True) -> dict:
         "refit_s_median": statistics.median(f.timings.get("total_s", math.nan) for f in fits)
         if fits
         else math.nan,
+        "refit_s_p95": float(np.percentile(refit_s, 95)) if refit_s else math.nan,
+        "refit_s_max": max(refit_s) if refit_s else math.nan,
         "refits_unreliable": sum(not f.reliable for f in fits),
         "flagged_events": list(result.final.flagged_events) if result.final else [],
         "final_fit": None

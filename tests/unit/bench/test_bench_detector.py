@@ -184,3 +184,26 @@ def test_bench_detector_sees_the_events_replay_publishes():
     for lab, ev in zip(labelled, replayed, strict=True):
         assert lab.rejected == (ev["state"] == "rejected")
         assert lab.p_false == pytest.approx(float(ev["p_false"]), abs=1e-12)
+
+
+def test_bench_detector_sees_the_events_replay_publishes_on_a_real_flight(external_data, tmp_path):
+    """The same on a real flight (``aggressive_flight``, imported as the bench imports it), with
+    the trigger lowered on both sides so that the contact-free flight makes candidates."""
+    from groundstation.cli.replay import _resolve
+    from groundstation.pipeline.offline import detect_offline
+
+    log = db.import_real_flight(external_data, db.REAL_PATHS[0], db.REAL_FILES[0], tmp_path)
+    low = ("contact.lateral_threshold_g=0.4", "contact.axial_threshold_g=0.5")
+    args = argparse.Namespace(config=None, set=list(low), quiet=True)
+    cfg = _resolve(log, args).config
+    labelled, _, _ = db.detect_and_label(str(log), "real", None, low)
+    replayed = [
+        e.payload
+        for e in detect_offline(str(log), cfg).events
+        if e.payload["state"] in ("end", "rejected")
+    ]
+    assert len(labelled) == len(replayed) > 0
+    for lab, ev in zip(labelled, replayed, strict=True):
+        assert lab.kind == "none"  # no truth on a real flight
+        assert lab.rejected == (ev["state"] == "rejected")
+        assert lab.p_false == pytest.approx(float(ev["p_false"]), abs=1e-12)
