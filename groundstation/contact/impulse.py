@@ -28,10 +28,10 @@ baseline of the opening sample is frozen, and the candidate lasts while ``m`` st
 ``release_ratio`` above it; a push longer than ``max_event_s`` is cut there. At the close, the
 impulse is integrated in the world frame (its direction is the outward normal ``n``; friction
 tilts it on oblique touches), its onset found by walking back from the peak to 15 % of it, and
-once ``evidence_window_s`` more of data has
-arrived the evidence of :mod:`groundstation.contact.evidence` is measured (duration, impulse, mocap
-approach and rebound speeds, their agreement with the IMU) and
-:class:`~groundstation.contact.evidence.EvidenceModel` turns it into ``p_false``.
+once ``evidence_window_s`` more of data has arrived the evidence of
+:mod:`groundstation.contact.evidence` is measured (duration, impulse, mocap approach and rebound
+speeds, their agreement with the IMU) and :class:`~groundstation.contact.evidence.EvidenceModel`
+turns it into ``p_false``.
 
 Observations
 ------------
