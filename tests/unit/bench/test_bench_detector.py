@@ -165,16 +165,15 @@ def test_cli_refuses_overlapping_seeds_and_unknown_engines(tmp_path):
         cli_bench.run_detector(args(engines="bullet"))
 
 
-def test_bench_detector_sees_the_events_replay_publishes():
-    """``bench detector`` labels exactly the events ``groundstation replay`` publishes on the same
-    log with the same settings: same number, same order, same p_false and rejections."""
+def assert_bench_sees_what_replay_publishes(log, engine: str, overrides=()) -> list:
+    """``bench detector`` labels exactly the events ``groundstation replay`` publishes on
+    ``log`` with the same settings: same number, same order, same p_false and rejections."""
     from groundstation.cli.replay import _resolve
     from groundstation.pipeline.offline import detect_offline
 
-    log = LOGS / "wall_slow_touch_gusts.mcap"
-    args = argparse.Namespace(config=None, set=[], quiet=True)
+    args = argparse.Namespace(config=None, set=list(overrides), quiet=True)
     cfg = _resolve(log, args).config  # what replay runs: the recorded settings as the base
-    labelled, _, _ = db.detect_and_label(str(log), "simple", None, ())
+    labelled, _, _ = db.detect_and_label(str(log), engine, None, tuple(overrides))
     replayed = [
         e.payload
         for e in detect_offline(str(log), cfg).events
@@ -184,26 +183,17 @@ def test_bench_detector_sees_the_events_replay_publishes():
     for lab, ev in zip(labelled, replayed, strict=True):
         assert lab.rejected == (ev["state"] == "rejected")
         assert lab.p_false == pytest.approx(float(ev["p_false"]), abs=1e-12)
+    return labelled
+
+
+def test_bench_detector_sees_the_events_replay_publishes():
+    assert_bench_sees_what_replay_publishes(LOGS / "wall_slow_touch_gusts.mcap", "simple")
 
 
 def test_bench_detector_sees_the_events_replay_publishes_on_a_real_flight(external_data, tmp_path):
     """The same on a real flight (``aggressive_flight``, imported as the bench imports it), with
     the trigger lowered on both sides so that the contact-free flight makes candidates."""
-    from groundstation.cli.replay import _resolve
-    from groundstation.pipeline.offline import detect_offline
-
     log = db.import_real_flight(external_data, db.REAL_PATHS[0], db.REAL_FILES[0], tmp_path)
     low = ("contact.lateral_threshold_g=0.4", "contact.axial_threshold_g=0.5")
-    args = argparse.Namespace(config=None, set=list(low), quiet=True)
-    cfg = _resolve(log, args).config
-    labelled, _, _ = db.detect_and_label(str(log), "real", None, low)
-    replayed = [
-        e.payload
-        for e in detect_offline(str(log), cfg).events
-        if e.payload["state"] in ("end", "rejected")
-    ]
-    assert len(labelled) == len(replayed) > 0
-    for lab, ev in zip(labelled, replayed, strict=True):
-        assert lab.kind == "none"  # no truth on a real flight
-        assert lab.rejected == (ev["state"] == "rejected")
-        assert lab.p_false == pytest.approx(float(ev["p_false"]), abs=1e-12)
+    labelled = assert_bench_sees_what_replay_publishes(log, "real", low)
+    assert all(lab.kind == "none" for lab in labelled)  # no truth on a real flight
