@@ -41,6 +41,11 @@ def detected_events(result: PipelineResult) -> list[DetectedEvent]:
     ]
 
 
+#: report.json keys that measure wall-clock time: they differ between two runs of the same log
+#: (everything else in a report is a function of the log and the settings).
+TIMING_KEYS = frozenset({"wall_s", "refit_s_median", "refit_s_p95", "refit_s_max"})
+
+
 def build_report(result: PipelineResult, *, scored: bool = True) -> dict:
     """Every report key of ``groundstation replay`` (truth metrics when the log has truth)."""
     fits = result.fits

@@ -23,13 +23,14 @@ from pathlib import Path
 import pytest
 
 from groundstation.cli import main as cli_main
+from groundstation.pipeline.outputs import TIMING_KEYS
 
 ROOT = Path(__file__).resolve().parents[2]
 LOGS = ROOT / "replay_logs"
 BIN = Path(sys.executable).parent
 VARIANTS = ("base", "low:contact.lateral_threshold_g=0.7")
 #: report.json keys that measure time or name the file, not the result.
-UNSTABLE = {"wall_s", "refit_s_median", "log", "snapshots"}
+UNSTABLE = TIMING_KEYS | {"log", "snapshots"}
 ENV = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
 
 
