@@ -184,8 +184,10 @@ class Link(abc.ABC):
         """Bytes received within ``timeout_s`` seconds, ``b""`` on timeout."""
 
     @abc.abstractmethod
-    def write(self, data: bytes) -> None:
-        """Send bytes; failures are reported as events, not raised."""
+    def write(self, data: bytes) -> bool:
+        """Send bytes; True when they went out. A drop (no peer or device yet, a send error)
+        returns False and is counted in ``dropped_writes`` (errors also as events), never
+        raised."""
 
     @abc.abstractmethod
     def close(self) -> None:

@@ -218,13 +218,14 @@ class SerialLink(Link):
         except (BlockingIOError, OSError):
             pass
 
-    def write(self, data: bytes) -> None:
-        """Write all of ``data``; while disconnected the bytes are dropped and counted."""
+    def write(self, data: bytes) -> bool:
+        """Write all of ``data``; while disconnected the bytes are dropped and counted
+        (False)."""
         with self._write_lock:
             ser = self._ser
             if ser is None and not self._maybe_reconnect():
                 self.dropped_writes += 1
-                return
+                return False
             ser = self._ser
             assert ser is not None
             try:
@@ -232,7 +233,7 @@ class SerialLink(Link):
             except serial.SerialTimeoutException as exc:
                 self.dropped_writes += 1
                 self._emit("write_error", f"{self.path}: {exc}")
-                return
+                return False
             except (serial.SerialException, OSError, ValueError) as exc:
                 self.dropped_writes += 1
                 self._emit("write_error", f"{self.path}: {exc}")
@@ -244,8 +245,9 @@ class SerialLink(Link):
                 else:  # the reader holds the port: let it do the swap
                     self._broken = (ser, f"write failed: {exc}")
                     self._wake_reader()
-                return
+                return False
             self.bytes_written += len(data)
+            return True
 
     def close(self) -> None:
         """Close the port and wake a blocked reader; idempotent."""

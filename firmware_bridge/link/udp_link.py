@@ -140,20 +140,21 @@ class UdpLink(Link):
             self._emit("connected", f"{sender[0]}:{sender[1]} system {lock.locked_system_id}")
         return data
 
-    def write(self, data: bytes) -> None:
-        """Send one datagram to the peer; dropped (and counted) if no peer is known yet."""
+    def write(self, data: bytes) -> bool:
+        """Send one datagram to the peer; dropped (counted, False) if no peer is known yet."""
         peer = self.peer
         if peer is None or self._closed.is_set():
             self.dropped_writes += 1
-            return
+            return False
         try:
             with self._lock:
                 self._sock.sendto(data, peer)
         except OSError as exc:
             self.dropped_writes += 1
             self._emit("write_error", f"{self.uri} -> {peer[0]}:{peer[1]}: {exc}")
-            return
+            return False
         self.bytes_written += len(data)
+        return True
 
     def close(self) -> None:
         """Close the socket and wake a blocked reader; idempotent."""

@@ -156,8 +156,9 @@ class NatNetLink(Link):
             self._emit("connected", f"server {src[0]} (commands to port {self.command_port})")
         return data
 
-    def write(self, data: bytes) -> None:
-        """Send ``data`` (an encoded NatNet command) to the server's command port.
+    def write(self, data: bytes) -> bool:
+        """Send ``data`` (an encoded NatNet command) to the server's command port; True when
+        it went out.
 
         Dropped and counted (event ``write_dropped``) while the server is unknown (multicast
         without ``?server=`` before any datagram) or once closed; send errors become
@@ -168,13 +169,15 @@ class NatNetLink(Link):
             self.dropped_writes += 1
             why = "closed" if self._closed.is_set() else "server address unknown (add ?server=)"
             self._emit("write_dropped", f"{self.uri}: {why}")
-            return
+            return False
         try:
             with self._lock:
                 self._sock.sendto(bytes(data), (server, self.command_port))
         except OSError as exc:
             self.dropped_writes += 1
             self._emit("write_error", f"{self.uri} -> {server}:{self.command_port}: {exc}")
+            return False
+        return True
 
     def close(self) -> None:
         """Close the socket and wake a blocked reader; idempotent."""

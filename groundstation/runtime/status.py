@@ -365,6 +365,7 @@ class StatusBoard:
             "pilot_failsafes": self.failsafes,
             "manual_control_sent": link.get("manual_control_sent"),
             "manual_control_stale_dropped": link.get("stale_dropped"),
+            "manual_control_unsent": link.get("unsent"),
             "warnings": self.warnings,
             "errors": self.errors,
             "restarts": {n: w["restarts"] for n, w in sorted(self.alerts.workers.items())},

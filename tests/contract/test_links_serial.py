@@ -177,7 +177,7 @@ def test_unplug_replug_same_link_object(device):
         device.unplug()
         assert link.wait_for_event("disconnected", 10.0) is not None
         assert not link.connected
-        link.write(b"while unplugged")  # dropped, not raised
+        assert link.write(b"while unplugged") is False  # dropped, not raised
         assert link.dropped_writes >= 1
         assert link.wait_for_event("reconnect_failed", 10.0) is not None  # the path is dead
 

@@ -31,7 +31,7 @@ def read_records(link, codec, n, idle_timeout_s=5.0):
 def test_listen_and_send_modes_reply_to_the_peer():
     with open_link("udp://127.0.0.1:0?mode=listen") as station:
         port = station.local_address[1]
-        station.write(b"nobody to send to yet")
+        assert station.write(b"nobody to send to yet") is False
         assert station.dropped_writes == 1
         with open_link(f"udp://127.0.0.1:{port}") as vehicle:
             assert vehicle.mode == "send" and station.mode == "listen"
@@ -48,7 +48,7 @@ def test_listen_and_send_modes_reply_to_the_peer():
             assert rx.stats.lost == 0
             assert station.peer == ("127.0.0.1", vehicle.local_address[1])
             # the station's reply goes back to the vehicle's ephemeral port
-            station.write(MavlinkCodec().encode(Heartbeat(6, 8, 0, 0, 4)))
+            assert station.write(MavlinkCodec().encode(Heartbeat(6, 8, 0, 0, 4))) is True
             (hb,) = read_records(vehicle, MavlinkCodec(1, 1), 1)
             assert isinstance(hb, Heartbeat) and hb.system_id == 255
         assert [e.kind for e in station.events][:2] == ["opened", "connected"]

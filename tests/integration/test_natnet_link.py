@@ -118,7 +118,7 @@ def test_closed_link_reads_empty_and_drops_writes():
     link.close()
     link.close()
     assert link.read(0.1) == b""
-    link.write(b"x")
+    assert link.write(b"x") is False
     assert link.dropped_writes == 1
     assert [e.kind for e in link.events] == ["opened", "closed", "write_dropped"]
 

@@ -25,7 +25,9 @@
   from the pilot's tick time ``source_ns`` on the shared monotonic clock): a stalled link never
   sends a stale backlog. 200 ms = the pilot's input stale window: a command may spend in transit
   at most as long as its input was allowed to age (10-minute soak on a loaded 2-core machine:
-  1 of 15006 commands took > 100 ms from tick to link);
+  1 of 15006 commands took > 100 ms from tick to link). A command the transport could not send
+  (no vehicle heard yet on a listening UDP link, a serial device gone) is counted as
+  ``unsent``, not as sent;
 - after a restart, measures the vehicle data it missed: the firmware-time gap between the last
   IMU sample the previous incarnation published (kept current in ``link.state``, a memory-mapped
   file of the session directory) and the first one it publishes (``restart_gap_s`` in its
@@ -173,6 +175,7 @@ class LinkProcess(Worker):
         self.commands_received = 0
         self.commands_stale = 0
         self.commands_rejected = 0
+        self.commands_unsent = 0  # the transport dropped it (no peer / device yet)
         self.acks: list[tuple[int, int]] = []
         self.last_rx_ns: int | None = None
         self.last_imu_source_ns: int | None = None
@@ -188,18 +191,20 @@ class LinkProcess(Worker):
         self.status_period_ns = int(s.health_period_s * 1e9)  # link.health rides with status
 
     # -- sending -----------------------------------------------------------------------------
-    def _send(self, record: Record) -> None:
-        """Encode and write one record (any thread); a bad value is counted and reported by the
-        main loop (the publisher belongs to it), never raised."""
+    def _send(self, record: Record) -> bool:
+        """Encode and write one record (any thread); True when the transport sent it. A bad
+        value is counted and reported by the main loop (the publisher belongs to it), never
+        raised."""
         link, tx = self.link, self.tx
         if link is None or tx is None:
-            return
+            return False
         try:
             with self._tx_lock:
-                link.write(tx.encode(record))
+                return link.write(tx.encode(record))
         except BridgeError as exc:  # a value out of range: report, keep going
             self.commands_rejected += 1
             self._warnings.append(f"not sent: {exc.message}")
+            return False
 
     def request_streams(self) -> None:
         """SET_MESSAGE_INTERVAL for HIGHRES_IMU and ATTITUDE_QUATERNION."""
@@ -223,7 +228,7 @@ class LinkProcess(Worker):
             if now_ns - source_ns > self.max_command_age_ns:
                 self.commands_stale += 1
                 return False
-        self._send(
+        sent = self._send(
             ManualControl(
                 int(payload["x"]),
                 int(payload["y"]),
@@ -233,8 +238,11 @@ class LinkProcess(Worker):
                 self.settings.target_system,
             )  # fmt: skip
         )
-        self.manual_sent += 1
-        return True
+        if sent:
+            self.manual_sent += 1
+        else:
+            self.commands_unsent += 1
+        return sent
 
     def _command_loop(self) -> None:
         """The command thread: each ``pilot.command`` becomes one MANUAL_CONTROL at once."""
@@ -409,6 +417,7 @@ class LinkProcess(Worker):
             "manual_control_sent": self.manual_sent,
             "stale_dropped": self.commands_stale,
             "rejected": self.commands_rejected,
+            "unsent": self.commands_unsent,
         }
         st = self.decoder.codec.stats
         topics["link"] = {
