@@ -421,6 +421,9 @@ class MapperSettings:
         Refit after this much data time since the last fit's data (seconds).
     refit_min_new : int
         ... or after this many new observations, whichever comes first.
+    refit_on_contact : bool
+        ... or as soon as a new contact observation and its internal point arrived (a touch
+        reaches the mesh one refit after it is published, not up to a period later).
     min_contacts : int
         Contact observations needed before the first fit.
     flag_p : float
@@ -444,6 +447,7 @@ class MapperSettings:
 
     refit_period_s: float = 2.0
     refit_min_new: int = 30
+    refit_on_contact: bool = True
     min_contacts: int = 2
     flag_p: float = 0.5
     flag_u: float = 0.3

@@ -135,7 +135,7 @@ def detect_offline(log_path: str, config: Config | None = None) -> DetectionRun:
     )  # fmt: skip
 
 
-def _stage_outputs(
+def _stage_batches(
     stage: ContactStage,
     log_path: str,
     cfg: Config,
@@ -143,16 +143,28 @@ def _stage_outputs(
     start: float | None = None,
     end: float | None = None,
     tap: Callable[[Envelope], None] | None = None,
-) -> Iterator[Envelope]:
+) -> Iterator[list[Envelope]]:
+    """The stage's outputs, one list per input sample that produced any (a contact's pairs
+    come out together, as the detector process publishes them)."""
     for env in iter_replay(log_path, start, end, settings=cfg.acquisition):
         if env.topic not in INPUT_TOPICS:
             continue
         if tap is not None:
             tap(env)
-        yield from stage.push(env)
+        out = stage.push(env)
+        if out:
+            yield out
         if progress is not None:
             progress(env.header.recv_ns)
-    yield from stage.flush()
+    out = stage.flush()
+    if out:
+        yield out
+
+
+def _stage_outputs(*args, **kwargs) -> Iterator[Envelope]:
+    """:func:`_stage_batches`, flattened."""
+    for batch in _stage_batches(*args, **kwargs):
+        yield from batch
 
 
 def _split(outs: Iterable[Envelope]) -> tuple[list[Envelope], list[Observation]]:
@@ -224,17 +236,21 @@ def run_offline(
             progress((recv_ns - start_ns) / 1e9, duration, len(fits), _begins(events))
             next_report[0] = recv_ns + 5_000_000_000
 
-    for env in _stage_outputs(stage, log_path, cfg, tick, start, end, tap):
-        if env.topic == "contact.event":
-            events.append(env)
+    for batch in _stage_batches(stage, log_path, cfg, tick, start, end, tap):
+        new: list[Observation] = []
+        for env in batch:
+            if env.topic == "contact.event":
+                events.append(env)
+            else:
+                new.append(observation_from_envelope(env))
+        if not new:
             continue
-        obs = observation_from_envelope(env)
-        observations.append(obs)
-        mapper.add([obs])
+        observations.extend(new)
+        mapper.add(new)  # all of one detector output at once, as the live mapper receives it
         if map_mode == "live":
             if mapper.due():
                 _append_fit(fits, mapper.refit(), keep_meshes)
-        elif marks and obs.t_ns >= marks[0] and mapper.ready():
+        elif marks and max(o.t_ns for o in new) >= marks[0] and mapper.ready():
             marks.pop(0)
             _append_fit(fits, mapper.refit(), keep_meshes)
     if mapper.pending and mapper.ready():

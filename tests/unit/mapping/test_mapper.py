@@ -79,6 +79,22 @@ def test_schedule_follows_data_time_and_new_count():
     assert m.due()
 
 
+def test_a_new_contact_with_its_internal_point_makes_a_refit_due_at_once():
+    m = make(refit_period_s=2.0, refit_min_new=100, min_contacts=1)
+    m.add([obs(0, 0.0, 1), obs(1, 0.1, 0, event=0), obs(2, 0.1, -1, event=0)])
+    assert m.due()  # 0.1 s of data: the period alone would wait until 2.0 s
+    m.refit()
+    m.add([obs(3, 0.3, 1)])
+    assert not m.due()  # free space alone waits for the period
+    m.add([obs(4, 0.4, 0, event=1)])
+    assert not m.due()  # the contact without its internal point: wait for the pair
+    m.add([obs(5, 0.4, -1, event=1)])
+    assert m.due()
+    off = make(refit_period_s=2.0, refit_min_new=100, min_contacts=1, refit_on_contact=False)
+    off.add([obs(0, 0.0, 1), obs(1, 0.1, 0, event=0), obs(2, 0.1, -1, event=0)])
+    assert not off.due()
+
+
 def test_refit_uses_everything_received_skip_ahead():
     m = make(refit_period_s=1.0, refit_min_new=1000)
     m.add([obs(0, 0, 1), obs(1, 0.1, 0, event=0), obs(2, 0.2, 0, event=0)])
