@@ -90,6 +90,13 @@ class StageStats:
         return dataclasses.asdict(self)
 
 
+#: A buffer of attitudes or poses is trimmed (by time) once it holds this many entries...
+_TRIM_AT = 8192
+#: ... and never holds more than this (11 minutes of 200 Hz mocap, about 40 MB): the backstop of
+#: a detector that has fallen that far behind, or of a session whose IMU never arrives.
+_CAPACITY = 1 << 17
+
+
 def _t_station(env: Envelope) -> int:
     t = env.payload.get("t_station_ns")
     return int(env.header.source_ns if t is None else t)
@@ -196,8 +203,12 @@ class ContactStage:
         else:
             self.detector = ContactDetector(s, first_id=first_id)
         self._events_out = 0
-        self._att = PoseBuffer(max_gap_ns=int(al.attitude_max_gap_s * 1e9))
-        self._pose = PoseBuffer(max_gap_ns=int(al.pose_max_gap_s * 1e9))
+        # trimmed by time behind the oldest queued IMU sample (:meth:`_trim`), never by count
+        # while the IMU still needs them: a detector that falls behind live data reads the pose
+        # stream ahead of the IMU stream (the bus serves its publishers in turn), and a
+        # count-bounded buffer then dropped the very poses its queued IMU samples needed
+        self._att = PoseBuffer(max_gap_ns=int(al.attitude_max_gap_s * 1e9), capacity=_CAPACITY)
+        self._pose = PoseBuffer(max_gap_ns=int(al.pose_max_gap_s * 1e9), capacity=_CAPACITY)
         self._body = None if al.body_id < 0 else int(al.body_id)
         self._wait_ns = int(al.max_wait_s * 1e9)
         self._queue: collections.deque[tuple[int, np.ndarray]] = collections.deque()
@@ -261,6 +272,8 @@ class ContactStage:
             self.stats.attitude += 1
             if self._att.insert(t, _ZERO3, np.asarray(a["q_wxyz"], dtype=np.float64)):
                 self._mark("attitude", t)
+                if len(self._att) > _TRIM_AT:
+                    self._trim()
         elif topic == "samples.pose":
             body = int(env.payload["body_id"])
             if self._body is None:
@@ -273,6 +286,8 @@ class ContactStage:
                 t, a["position_m"], a["q_wxyz"]
             ):
                 self._mark("pose", t)
+                if len(self._pose) > _TRIM_AT:
+                    self._trim()
         else:
             raise KeyError(topic)
 
@@ -297,10 +312,22 @@ class ContactStage:
             self._queue.popleft()
             out += self._process(t, acc)
         if out or final:
-            keep = (self._queue[0][0] if self._queue else (wm["imu"] or 0)) - 1_000_000_000
-            self._att.drop_before(keep)
-            self._pose.drop_before(keep)
+            self._trim()
         return out
+
+    def _trim(self) -> None:
+        """Forget attitudes and poses more than 1 s older than the oldest IMU sample that may
+        still need them (the queue's head, or the newest IMU sample when none is queued; none
+        before the first IMU sample, whose time is unknown until it arrives)."""
+        wm = self._wm["imu"]
+        if self._queue:
+            keep = self._queue[0][0] - 1_000_000_000
+        elif wm is not None:
+            keep = wm - 1_000_000_000
+        else:
+            return
+        self._att.drop_before(keep)
+        self._pose.drop_before(keep)
 
     def _process(self, t: int, acc: np.ndarray) -> list[Envelope]:
         att = self._att.at(t)

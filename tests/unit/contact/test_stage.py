@@ -103,6 +103,17 @@ def test_shuffled_interleavings_give_identical_output():
     assert keys(run(att + pose + imu)[0]) == ref
 
 
+def test_a_pose_stream_read_far_ahead_of_the_imu_loses_no_pose():
+    # a detector behind live data reads the mocap publisher's backlog faster than the link's:
+    # 60 s of poses (12,000, beyond the 4,096 a count-bounded buffer held) before any IMU sample
+    imu, att, pose = streams(duration_s=60.0, bumps=(2.0, 55.0))
+    ref_out, ref_stage = run(interleave([imu, att, pose], random.Random(0), max_lag=1))
+    out, st = run(pose + interleave([imu, att], random.Random(1), max_lag=1))
+    assert keys(out) == keys(ref_out)
+    assert st.stats.no_pose == ref_stage.stats.no_pose < 0.05 * st.stats.imu
+    assert len([e for e in out if e.topic == "contact.event"]) == 4
+
+
 def test_event_geometry():
     imu, att, pose = streams()
     out, _ = run(interleave([imu, att, pose], random.Random(3)))
