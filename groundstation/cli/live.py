@@ -64,8 +64,11 @@ from groundstation.runtime.status import StatusBoard
 from groundstation.runtime.supervisor import Supervisor, WorkerSpec, python_module
 
 #: Priority changes (nice) asked for: the acquisition and pilot path get more CPU share than the
-#: rest of a loaded machine, the recorders a little (a privilege; without it they say so).
-NICE = {"link": -5, "mocap": -5, "pilot": -5, "recorder": -3, "recorder2": -3}
+#: rest of a loaded machine, the recorders and the detector a little (a privilege; without it
+#: they say so). The detector must keep up with 200 Hz samples or every contact is late (the
+#: 10-minute load soak at nice 0: 170 s behind at the end); the mapper and the viewer degrade
+#: by skipping refits and frames instead.
+NICE = {"link": -5, "mocap": -5, "pilot": -5, "recorder": -3, "recorder2": -3, "detector": -3}
 #: What the monitor subscribes to: the samples (so that it is one of the subscribers the sources
 #: wait for) and the state and events it shows; not the raw wire bytes, which only the recorders
 #: need (decoding them here would cost the terminal a third of its CPU for nothing).
@@ -211,6 +214,7 @@ def plan(args: argparse.Namespace, session_id: str) -> tuple[Session, list[Worke
                 python_module(DETECTOR_MODULE, *session.as_args(), *detector),
                 warm=True,
                 max_restarts=20,
+                nice=NICE["detector"],
             )  # fmt: skip
         )
     if not args.no_viewer:

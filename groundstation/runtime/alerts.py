@@ -20,6 +20,8 @@ mocap socket failed / silent           ``MOCAP FAILED: <reason>``, ``MOCAP SILEN
 mocap datagrams rejected / bad         ``MOCAP REJECTED 12``, ``MOCAP BAD 3``
 no new mesh for > 3 refit periods      ``MAP STALE 12 s``
 recorder writing late / failed         ``REC BEHIND 2.3 s``, ``REC FAILED: ...``
+the detector reading samples > 1 s     ``DETECTOR BEHIND 4.2 s``
+late (CPU starvation)
 a restarted worker reading what it      ``DETECTOR CATCHING UP 12 s``
 missed from the recording
 data a restart could not recover       ``DETECTOR LOST 40 SAMPLES IN RESTART``,
@@ -52,6 +54,7 @@ class AlertSettings:
     stale_periods: float = 3.0
     min_contacts: int = 1
     rec_behind_s: float = 1.0
+    detector_behind_s: float = 1.0
     restart_note_s: float = 10.0
     loss_window_s: float = 5.0
     monitor_lag_s: float = 1.0
@@ -176,6 +179,10 @@ class Alerts:
         self._map(out, now_ns)
         self._recorders(out)
         for name, st in self.status.items():
+            lag = (st.get("topics") or {}).get("lag_s")
+            if name.startswith("detector") and isinstance(lag, int | float):
+                if lag > self.s.detector_behind_s:
+                    out[f"behind:{name}"] = f"{name.upper()} BEHIND {lag:.1f} s"
             if st.get("state") == "catching up":
                 up = ((st.get("topics") or {}).get("process") or {}).get("uptime_s")
                 took = f" {up:.0f} s" if isinstance(up, int | float) else ""

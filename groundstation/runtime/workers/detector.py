@@ -9,7 +9,9 @@ Command line (started by the supervisor; ``groundstation live`` and ``replay --p
 
 - Binds as ``--name`` in the session (``/tmp/gs-ID/detector.sock``) and publishes
   ``observations`` and ``contact.event`` (lossless), ``status`` (latest, every second of wall
-  time: counters and the stage's ``StageStats``) and ``log``.
+  time: counters, the stage's ``StageStats`` and, live, ``lag_s``: the longest a sample
+  waited since the last status between its publisher's stamp and the stage; the status line
+  shows ``DETECTOR BEHIND``) and ``log``.
 - Before subscribing it waits (XPUB handshake, ``acquisition.subscriber_timeout_s``) for
   ``--wait-subscribers`` subscribers of ``observations`` (the mapper, a recorder, a viewer),
   so no observation is sent before they listen.
@@ -130,6 +132,7 @@ class DetectorProcess(Worker):
         self._dirty = False
         self._consistent = True
         self.unpublishable = 0
+        self._lag_max = 0  # ns, since the last status
 
     # -- files ---------------------------------------------------------------------------------
     def _path(self, filename: str) -> str:
@@ -246,6 +249,9 @@ class DetectorProcess(Worker):
         self.consumed[stream_key(env)] = int(env.header.seq)
         if env.header.recv_ns:
             self.last_recv_ns = int(env.header.recv_ns)
+            if self.flow_from is None:  # live: stamped by the link / mocap when read
+                lag = time.monotonic_ns() - self.last_recv_ns
+                self._lag_max = max(self._lag_max, lag)
         self._dirty = True
         self._consistent = True
 
@@ -292,6 +298,9 @@ class DetectorProcess(Worker):
         s = self.summary()
         topics["stage"] = s["stage"]
         topics["gaps"] = s["gaps"]
+        if self.flow_from is None:
+            topics["lag_s"] = round(self._lag_max / 1e9, 3)
+            self._lag_max = 0
         if self.catchup:
             topics["catchup"] = {**self.catchup, "suppressed": self.suppressed}
         return topics

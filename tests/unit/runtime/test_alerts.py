@@ -132,3 +132,14 @@ def test_an_expected_stream_that_never_came_counts_as_lost():
     a = Alerts(0, expect=("samples.imu", "samples.pose"))
     a.on_message(env("samples.imu"), S)
     assert a.data_loss() == ["no POSE ever received"]
+
+
+def test_a_detector_reading_samples_late_is_shown_behind_until_it_catches_up():
+    a = Alerts(0)
+    a.on_message(status("detector", lag_s=0.4), S)
+    assert "BEHIND" not in texts(a, S)
+    a.on_message(status("detector", lag_s=12.3), 2 * S)
+    assert "DETECTOR BEHIND 12.3 s" in texts(a, 2 * S)
+    a.on_message(status("detector", lag_s=0.05), 3 * S)
+    assert "BEHIND" not in texts(a, 3 * S)
+    assert [e["text"] for e in a.events] == ["DETECTOR BEHIND 12.3 s"]
