@@ -40,6 +40,11 @@ is queued, close the file and exit 0. An unwritable path or a full disk is a
 the process keeps running and counts the messages it drops instead of crashing (a crash would
 only be restarted into the same error). Its status also says how far behind it writes
 (``lag_s``: now minus the receive time of the newest message written).
+
+Detector outputs are recorded once: an observation or contact event whose id an earlier
+incarnation of the detector already published (a SIGKILL between sending an output and
+counting it as sent makes the resumed detector send that one again) is dropped and counted
+(``duplicates``).
 """
 
 from __future__ import annotations
@@ -79,6 +84,11 @@ _REMIND_NS = 5_000_000_000
 DEFAULT_SEGMENT_S = 60.0
 DEFAULT_RING_S = 10.0
 LOCK_FILE = "recorder.lock"
+#: Topics whose messages are the detector's outputs, each published once under its id.
+_KEYED_OUTPUTS = frozenset({"observations", "contact.event"})
+#: How many of them the recorder remembers to drop a repeat (a repeat follows its first within
+#: the seconds of a restart; 65,536 is hours of contacts).
+_KEYED_MEMORY = 65_536
 
 
 def _station_version() -> str:
@@ -163,6 +173,8 @@ class RecorderProcess(Worker):
         self.sub = Tap(session.subscribe_endpoints(), self.ctx)
         self.dropped = 0
         self.bad = 0
+        self.duplicates = 0  # detector outputs a restarted detector published again
+        self._outputs: collections.OrderedDict[tuple, int] = collections.OrderedDict()
         self.recorder: Recorder | None = None
         self.error: RecordingError | None = None
         self.segment_index: int | None = None
@@ -299,8 +311,31 @@ class RecorderProcess(Worker):
             return
         self.write_message(msg)
 
+    def _repeated_output(self, msg: Tapped) -> bool:
+        """Whether ``msg`` is a detector output (an observation or a contact event, keyed by its
+        id) that an earlier incarnation of its publisher already published. A detector
+        SIGKILLed between sending an output and counting it as sent publishes that one output
+        again when it resumes (at least once, never lost); the recording keeps the first."""
+        if msg.topic not in _KEYED_OUTPUTS:
+            return False
+        try:
+            p = msg.envelope.payload
+            key = (msg.topic, int(p["id"]), p.get("state"))
+        except (EnvelopeError, KeyError, TypeError, ValueError):
+            return False  # the write path names a malformed message
+        origin = msg.header.origin
+        first = self._outputs.setdefault(key, origin)
+        if first != origin:
+            self.duplicates += 1
+            return True
+        while len(self._outputs) > _KEYED_MEMORY:
+            self._outputs.popitem(last=False)
+        return False
+
     def write_message(self, msg: Tapped) -> None:
         """The write path: one received message into the current segment."""
+        if self._repeated_output(msg):
+            return
         if self.recorder is None and self.error is None:
             self._open_segment()
         rec = self.recorder
@@ -397,6 +432,7 @@ class RecorderProcess(Worker):
             "bytes_written": rec.stats.bytes_written if rec is not None else 0,
             "dropped": self.dropped,
             "bad": self.bad,
+            "duplicates": self.duplicates,
             "role": self.role,
             "segment": self.segment_index,
             "segments_written": self.segments_written,
