@@ -238,7 +238,8 @@ def test_joystick_flies_the_sitl_at_a_fixed_rate_and_silence_lets_its_failsafe_a
     counts = summary["recording"]["topic_counts"]
     # (a command the pilot sent before the listening link had heard the vehicle went nowhere:
     # counted as unsent, not as sent)
-    dropped = (summary["manual_control_stale_dropped"] or 0) + (summary["manual_control_unsent"] or 0)
+    stale, unsent = summary["manual_control_stale_dropped"], summary["manual_control_unsent"]
+    dropped = (stale or 0) + (unsent or 0)
     assert counts["pilot.command"] - dropped == len(cmds), summary
     assert summary["manual_control_sent"] == len(cmds)
     assert counts["raw.pilot"] > 0 and summary["gaps_monitor"] == 0
