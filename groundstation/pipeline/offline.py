@@ -237,12 +237,8 @@ def run_offline(
             next_report[0] = recv_ns + 5_000_000_000
 
     for batch in _stage_batches(stage, log_path, cfg, tick, start, end, tap):
-        new: list[Observation] = []
-        for env in batch:
-            if env.topic == "contact.event":
-                events.append(env)
-            else:
-                new.append(observation_from_envelope(env))
+        batch_events, new = _split(batch)
+        events.extend(batch_events)
         if not new:
             continue
         observations.extend(new)
