@@ -128,15 +128,17 @@ def add_replay_arguments(parser: argparse.ArgumentParser) -> None:
         "--map",
         choices=("live", "final"),
         default="live",
-        help="live: refit on the live cadence (default); final: detect over the whole log, then "
-        "fit once on everything (fastest when only the final map matters)",
+        help="live: refit on the live cadence (default); final: detect over the whole log, fit "
+        "where the live mapper learns its kernel (each time the data grew by "
+        "mapping.theta_refit_growth), then on everything (when only the final map matters)",
     )
     parser.add_argument(
         "--checkpoints",
         type=int,
-        default=0,
+        default=None,
         metavar="N",
-        help="with --map final: also fit N times at evenly spaced log times",
+        help="with --map final: fit N times at evenly spaced log times instead (0: only the "
+        "final fit)",
     )
     parser.add_argument(
         "--allow-damaged",
@@ -296,7 +298,7 @@ def run_replay(args: argparse.Namespace) -> int:
     log = Path(args.log)
     if args.snapshots < 0:
         raise ConfigError(f"--snapshots must be >= 0, got {args.snapshots}")
-    if args.checkpoints < 0:
+    if args.checkpoints is not None and args.checkpoints < 0:
         raise ConfigError(f"--checkpoints must be >= 0, got {args.checkpoints}")
     if args.map == "final" and (args.processes or math.isfinite(args.speed)):
         raise ConfigError(

@@ -106,7 +106,7 @@ class Task:
     config: Config
     config_hash: str
     map_mode: str = "live"
-    checkpoints: int = 0
+    checkpoints: int | None = None
 
     @property
     def key(self) -> str:
@@ -145,12 +145,14 @@ class Plan:
         return tuple(seen.values())
 
 
-def replay_settings_text(config: Config, map_mode: str, checkpoints: int) -> str:
-    """The resolved settings of a task as TOML: the config and the replay mode."""
-    return to_toml(config) + f"\n[replay]\nmap = {map_mode!r}\ncheckpoints = {int(checkpoints)}\n"
+def replay_settings_text(config: Config, map_mode: str, checkpoints: int | None) -> str:
+    """The resolved settings of a task as TOML: the config and the replay mode (checkpoints
+    ``"growth"``: ``replay --map final`` without ``--checkpoints``)."""
+    cp = "'growth'" if checkpoints is None else str(int(checkpoints))
+    return to_toml(config) + f"\n[replay]\nmap = {map_mode!r}\ncheckpoints = {cp}\n"
 
 
-def config_hash(config: Config, map_mode: str = "live", checkpoints: int = 0) -> str:
+def config_hash(config: Config, map_mode: str = "live", checkpoints: int | None = None) -> str:
     """sha256 (hex) of :func:`replay_settings_text`."""
     return hashlib.sha256(replay_settings_text(config, map_mode, checkpoints).encode()).hexdigest()
 
@@ -162,7 +164,7 @@ def plan_batch(
     *,
     base_overrides: Sequence[str] = (),
     map_mode: str = "live",
-    checkpoints: int = 0,
+    checkpoints: int | None = None,
 ) -> Plan:
     """Every (variant, log) cell with its task.
 
@@ -179,7 +181,7 @@ def plan_batch(
     """
     if map_mode not in MAP_MODES:
         raise ConfigError(f"--map {map_mode!r}: use live or final")
-    if checkpoints < 0:
+    if checkpoints is not None and checkpoints < 0:
         raise ConfigError(f"checkpoints must be >= 0, got {checkpoints}")
     variants = tuple(variants) or (Variant("default"),)
     names = [v.name for v in variants]

@@ -48,6 +48,7 @@ def test_config_hash_follows_the_resolved_settings_not_their_spelling():
     assert config_hash(resolve(["contact.threshold_g=1.0"])) != base
     assert config_hash(resolve([]), "final") != base
     assert config_hash(resolve([]), "final", 2) != config_hash(resolve([]), "final")
+    assert config_hash(resolve([]), "final", 0) != config_hash(resolve([]), "final")  # growth
     assert len(base) == 64 and int(base, 16) >= 0
 
 
