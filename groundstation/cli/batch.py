@@ -43,7 +43,8 @@ def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
         "--map",
         choices=("live", "final"),
         default="live",
-        help="as replay --map: live refit cadence (default) or one fit at the end",
+        help="as replay --map: live refit cadence (default) or the final map (fits only where "
+        "the live mapper learns its kernel)",
     )
     parser.add_argument("--config", default=None, help="TOML configuration file (every task)")
     parser.add_argument(

@@ -211,7 +211,7 @@ def run_offline(
         Intermediate fits of ``map_mode = "final"``. None (default): a fit each time the
         observations held have grown by ``mapping.theta_refit_growth`` since the last one, the
         refits at which the live mapper learns its kernel and warm-starts the decisions of the
-        next (about 30 fits for a 40-minute survey, against one every 2 s live). One cold fit on
+        next (22 fits on a 40-minute survey, against 1,212 refits live). One cold fit on
         everything learns the kernel with every gust weighted as a touch and lost surface the
         warm-started sequence kept (40-minute survey: missing share 0.68 against 0.42).
         ``N``: N fits at evenly spaced data times instead (0: the final fit alone).
