@@ -147,7 +147,8 @@ def surface_scores(
     phantom_m: float = 0.15,
 ) -> dict[str, float]:
     """``chamfer_m``, ``chamfer_full_m`` and ``shape_error_m`` (module docstring); NaN when
-    there is no mesh."""
+    there is no mesh, and then ``missing_share`` 1 (all the touched surface is missing) or NaN
+    when nothing was touched (a contact-free flight has no surface to miss)."""
     nan = {
         k: math.nan
         for k in (
@@ -155,7 +156,7 @@ def surface_scores(
             "truth_to_mesh_median_m", "phantom_area_m2", "phantom_max_patch_m2",
         )
     }  # fmt: skip
-    nan["missing_share"] = 1.0
+    nan["missing_share"] = 1.0 if len(touched_points(truth)) else math.nan
     if mesh is None or mesh.is_empty:
         return nan
     scene = _scene(truth)
