@@ -40,8 +40,6 @@ REPORT_SUMMARY_KEYS = (
     "duration_s", "contacts", "contacts_per_min", "observations", "refits", "refit_s_median",
     "chamfer_m", "shape_error_m", "fp_precision", "fp_recall",
 )  # fmt: skip
-#: Meshes kept for replay.mcap (every fit's mesh up to this many; older ones are dropped).
-KEEP_MESHES = 200
 
 
 def _speed(text: str) -> float:
@@ -345,6 +343,7 @@ def run_replay(args: argparse.Namespace) -> int:
                 output.samples_from_log(config.acquisition)
         else:
             from groundstation.pipeline.offline import run_offline
+            from groundstation.pipeline.outputs import KEEP_MESHES
 
             taps = [t for t in (output and output.sample, web and web.logger.ingest_envelope) if t]
 

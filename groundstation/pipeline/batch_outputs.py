@@ -84,7 +84,7 @@ def run_task(task: Task, out_root: str, snapshots: int = 3) -> dict[str, Any]:
     """
     from groundstation.errors import ConvergenceWarning
     from groundstation.pipeline.offline import run_offline
-    from groundstation.pipeline.outputs import write_outputs
+    from groundstation.pipeline.outputs import KEEP_MESHES, write_outputs
 
     out = Path(out_root)
     final = out / task.folder
@@ -99,7 +99,11 @@ def run_task(task: Task, out_root: str, snapshots: int = 3) -> dict[str, Any]:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", ConvergenceWarning)
             result = run_offline(
-                task.log, task.config, map_mode=task.map_mode, checkpoints=task.checkpoints
+                task.log,
+                task.config,
+                keep_meshes=KEEP_MESHES,
+                map_mode=task.map_mode,
+                checkpoints=task.checkpoints,
             )
             write_outputs(result, staging, snapshots=snapshots)
         marker = {

@@ -41,6 +41,10 @@ def detected_events(result: PipelineResult) -> list[DetectedEvent]:
     ]
 
 
+#: Meshes a replay with outputs keeps for replay.mcap (every fit's mesh up to this many; older
+#: ones are dropped): ``replay --out`` and every batch task, so both write the same file.
+KEEP_MESHES = 200
+
 #: report.json keys that measure wall-clock time: they differ between two runs of the same log
 #: (everything else in a report is a function of the log and the settings).
 TIMING_KEYS = frozenset({"wall_s", "refit_s_median", "refit_s_p95", "refit_s_max"})
