@@ -5,7 +5,9 @@ sees the samples in the recorded order), recorded by the recorder, and processed
 detector, which is SIGKILLed mid-flight; the supervisor restarts it and it catches up from its
 checkpoint and the recording. Its recorded outputs must equal what the detector core makes of
 the flight in one pass (``iter_replay`` + ``ContactStage``): same ids, states, labels and data
-times, each once.
+times, each once. An output the killed detector handed to ZeroMQ may have reached the test's
+subscriber and not the recorder (one did, once in a fresh-clone CI run): the resumed detector
+sends its last outputs again and the recorder keeps the first copy of each.
 """
 
 from __future__ import annotations
@@ -102,5 +104,6 @@ def test_a_killed_detector_resumes_from_its_checkpoint_and_the_recording(tmp_pat
     )
     resumed = [m for m in logs if m.startswith("resumed from its checkpoint")]
     assert resumed and "lost" not in resumed[0], logs
+    assert " 0 re-sent" not in resumed[0], resumed[0]  # the send queue's last outputs went again
     assert len({e.header.origin for e in got}) == 2  # two incarnations published
     print(f"\n{len(keys)} outputs identical to one pass of the core; {resumed[0]}")

@@ -33,8 +33,13 @@ counter file (``detector.published``: how many observations and contact events o
 numbering are out). A restarted detector loads the checkpoint (none: a fresh stage from the
 start of the session), subscribes, reads from the recording every sample between the
 checkpoint and the first one it receives live (:mod:`groundstation.runtime.catchup`), runs them
-through the stage, and publishes only the outputs beyond the counter: every contact event and
-observation comes out exactly once, with the ids a detector that never died would have given.
+through the stage, and publishes the outputs beyond the counter, with the ids a detector that
+never died would have given. An output counted as published may still have been in the killed
+process's ZeroMQ send queue, delivered to one subscriber and not to another, so the last
+``RESEND`` outputs of each topic below the counter are published again (the checkpoint keeps
+those from before it; the catch-up re-derives those after it). Every contact event and
+observation therefore comes out at least once and never goes missing; the recorder keeps the
+first copy of each (topic, id, state) and the mapper ignores a repeated id.
 Samples that neither the recording nor the live stream hold are counted (``catchup.lost``).
 Ids therefore start at ``--first-id`` (0) in every live session as in a replay; ``auto`` (the
 wall clock) remains for a detector without recording.
@@ -48,6 +53,7 @@ import os
 import pickle
 import sys
 import time
+from collections import deque
 from collections.abc import Sequence
 
 import zmq
@@ -73,6 +79,9 @@ DETECTOR_FINISHED = "detector finished"
 CHECKPOINT_FILE = "detector.ckpt"
 PUBLISHED_FILE = "detector.published"
 _CHECKPOINT_NS = 1_000_000_000
+# outputs per topic published again after a restart: far more than a send queue holds in the
+# moments before a SIGKILL (about 2 s of observations at the densest free-space sampling)
+RESEND = 64
 
 
 class PublishedCounter:
@@ -96,6 +105,43 @@ class PublishedCounter:
 
     def close(self) -> None:
         self._file.close()
+
+
+class OutputWindow:
+    """Which stage outputs a detector publishes, given how many of each topic an earlier
+    incarnation counted as published (``limit``; zero for a first start).
+
+    Outputs below ``limit - size`` were out long before the previous incarnation died and are
+    skipped; the last ``size`` below it may have died in its send queue and go out again
+    (consumers keep the first copy); outputs from ``limit`` on are new. The window also keeps the
+    last ``size`` outputs of each topic it let out, which a checkpoint stores so that a restart
+    can send again those it will not re-derive. Pure: no I/O."""
+
+    def __init__(self, limit: dict[str, int] | None = None, size: int = RESEND) -> None:
+        self.limit = dict(limit or {})
+        self.size = size
+        self.suppressed = 0
+        self.resent = 0
+        self._recent: dict[str, deque[Envelope]] = {}
+
+    def admit(self, env: Envelope) -> bool:
+        """Whether ``env`` goes out now (counted as skipped or re-sent when it went before)."""
+        limit, seq = self.limit.get(env.topic, 0), int(env.header.seq)
+        if seq >= limit:
+            return True
+        if seq < limit - self.size:
+            self.suppressed += 1  # the previous incarnation published it long ago
+            return False
+        self.resent += 1
+        return True
+
+    def sent(self, env: Envelope) -> None:
+        """``env`` went out: remember it among the recent ones."""
+        self._recent.setdefault(env.topic, deque(maxlen=self.size)).append(env)
+
+    def recent(self) -> dict[str, list[Envelope]]:
+        """The last ``size`` outputs let out, per topic (for the checkpoint)."""
+        return {t: list(q) for t, q in self._recent.items()}
 
 
 class DetectorProcess(Worker):
@@ -125,9 +171,8 @@ class DetectorProcess(Worker):
         self.consumed: dict[tuple[str, int], int] = {}
         self.last_recv_ns: int | None = None
         self.catchup: dict = {}
-        self.suppressed = 0
+        self.window = OutputWindow()
         self._published: PublishedCounter | None = None
-        self._limit = {"observations": 0, "contact.event": 0}
         self._next_checkpoint = 0
         self._dirty = False
         self._consistent = True
@@ -156,7 +201,12 @@ class DetectorProcess(Worker):
         if self.recording is None or not self._dirty or not self._consistent:
             return
         path = self._path(CHECKPOINT_FILE)
-        state = {"stage": self.stage, "consumed": self.consumed, "recv_ns": self.last_recv_ns}
+        state = {
+            "stage": self.stage,
+            "consumed": self.consumed,
+            "recv_ns": self.last_recv_ns,
+            "recent": self.window.recent(),
+        }
         try:
             with open(path + ".tmp", "wb") as fh:
                 pickle.dump(state, fh, protocol=pickle.HIGHEST_PROTOCOL)
@@ -187,7 +237,10 @@ class DetectorProcess(Worker):
         if ck is not None:
             self.stage, self.consumed = ck["stage"], dict(ck["consumed"])
             self.last_recv_ns = ck.get("recv_ns")
-        self._limit = self._published.get()
+        self.window = OutputWindow(self._published.get())
+        if ck is not None:  # outputs from before the checkpoint that may not have reached everyone
+            for envs in ck.get("recent", {}).values():
+                self._publish(envs)
         plan = GapPlan(self.consumed)
         since = None if self.last_recv_ns is None else self.last_recv_ns - 2_000_000_000
         self.state = "catching up"
@@ -213,7 +266,8 @@ class DetectorProcess(Worker):
             "warning" if (res.lost or res.error) else "info",
             f"resumed {'from its checkpoint' if ck else 'from the session start'}: "
             f"{len(res.recorded)} recorded sample(s) caught up in {res.waited_s:.1f} s, "
-            f"{self.suppressed} output(s) already published skipped{lost}{err}",
+            f"{self.window.suppressed} output(s) already published skipped, "
+            f"{self.window.resent} re-sent{lost}{err}",
         )
         self.state = "running"
 
@@ -225,10 +279,9 @@ class DetectorProcess(Worker):
 
     def _publish(self, outs: list[Envelope]) -> None:
         for env in outs:
-            seq = int(env.header.seq)
-            if seq < self._limit.get(env.topic, 0):
-                self.suppressed += 1  # the previous incarnation published it
+            if not self.window.admit(env):
                 continue
+            seq = int(env.header.seq)
             try:
                 self.pub.publish(env.topic, env.payload, env.arrays, source_ns=env.header.source_ns)
             except EnvelopeError as exc:
@@ -240,6 +293,7 @@ class DetectorProcess(Worker):
                 self.rates.add(env.topic)
             if self._published is not None:
                 self._published.advance(env.topic, seq)
+                self.window.sent(env)
 
     def _push(self, env: Envelope) -> None:
         # until the stage's outputs are all out, its state must not be checkpointed: a restart
@@ -302,7 +356,8 @@ class DetectorProcess(Worker):
             topics["lag_s"] = round(self._lag_max / 1e9, 3)
             self._lag_max = 0
         if self.catchup:
-            topics["catchup"] = {**self.catchup, "suppressed": self.suppressed}
+            w = self.window
+            topics["catchup"] = {**self.catchup, "suppressed": w.suppressed, "resent": w.resent}
         return topics
 
     def status_text(self) -> str:

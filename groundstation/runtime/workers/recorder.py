@@ -313,9 +313,9 @@ class RecorderProcess(Worker):
 
     def _repeated_output(self, msg: Tapped) -> bool:
         """Whether ``msg`` is a detector output (an observation or a contact event, keyed by its
-        id) that an earlier incarnation of its publisher already published. A detector
-        SIGKILLed between sending an output and counting it as sent publishes that one output
-        again when it resumes (at least once, never lost); the recording keeps the first."""
+        id) that an earlier incarnation of its publisher already published. A resumed detector
+        publishes again the last outputs the killed one counted as sent, since those may have
+        died in its send queue (at least once, never lost); the recording keeps the first."""
         if msg.topic not in _KEYED_OUTPUTS:
             return False
         try:
