@@ -248,6 +248,10 @@ class EventMixtureGPIS:
         Convergence: largest change of a responsibility.
     kernel_iter : int
         L-BFGS-B iterations of a kernel step.
+    flag_inside : bool
+        Whether a group that the rest of the data places inside the structure (mean residual
+        ``e_g > 0``: its labels lie above the prediction) may gain evidence for 'false'. Off,
+        its ``llr_g`` is at most 0: a false contact lies where the vehicle flew, in free space.
     chunk_mb : float
         Memory budget of one prediction chunk.
     """
@@ -264,6 +268,7 @@ class EventMixtureGPIS:
         max_iter: int = 20,
         tol: float = 1e-3,
         kernel_iter: int = 15,
+        flag_inside: bool = False,
         chunk_mb: float = 64.0,
     ) -> None:
         if not outlier_var > 0 or max_iter < 1 or not tol > 0:
@@ -276,6 +281,7 @@ class EventMixtureGPIS:
         self.max_iter = int(max_iter)
         self.tol = float(tol)
         self.kernel_iter = int(kernel_iter)
+        self.flag_inside = bool(flag_inside)
         self.chunk_mb = float(chunk_mb)
         self.fit_: MixtureFit | None = None
 
@@ -450,6 +456,8 @@ class EventMixtureGPIS:
                 vg = max(float(V[np.ix_(k, k)].mean()), 0.0)
                 sg = float(s2[rows[k]].mean())
                 llr[g] = _log_normal(eg, vg + self.outlier_var) - _log_normal(eg, vg + sg)
+                if eg > 0 and not self.flag_inside:
+                    llr[g] = min(llr[g], 0.0)  # placed inside by the rest: not a gust's point
         return llr
 
     def _kernel_step(self, D, w, resid, ell, sf2) -> tuple[float, float]:

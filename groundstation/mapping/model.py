@@ -202,6 +202,7 @@ class SurfaceModel:
             learn_kernel=learn,
             max_iter=ms.refit_max_iter if warm else ms.mixture_max_iter,
             tol=ms.flag_tol,
+            flag_inside=ms.flag_inside,
             chunk_mb=self.surface.chunk_mb,
         )
 
