@@ -118,6 +118,11 @@ COMMANDS: dict[tuple[str, ...], Command] = {
         "speed",
         "fit and prediction times of the estimators and the default mapper at the paper's sizes",
     ),
+    ("bench", "inject"): Command(
+        "bench",
+        "inject",
+        "refit times and the flag of one false contact planted in each real contact-free flight",
+    ),
     ("bench", "fuzz"): Command(
         "bench",
         "fuzz",

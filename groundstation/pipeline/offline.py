@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 
 from groundstation.acquisition.replay import iter_replay
 from groundstation.acquisition.segments import open_session as open_recording  # segments as one
@@ -189,6 +189,7 @@ def run_offline(
     start: float | None = None,
     end: float | None = None,
     tap: Callable[[Envelope], None] | None = None,
+    inject: Sequence[Observation] = (),
 ) -> PipelineResult:
     """Run the whole pipeline in process on ``log_path``.
 
@@ -220,6 +221,11 @@ def run_offline(
     tap : callable, optional
         Called with every decoded sample envelope before the detector sees it (replay outputs
         translate them to Foxglove channels without decoding the log twice).
+    inject : sequence of Observation
+        Extra observations (ids and event ids unused by the detector) handed to the mapper with
+        the first detector output at or after their data time, as if the detector had made
+        them (``bench inject`` plants a false contact in a real flight this way). They are in
+        ``observations`` of the result.
     """
     if map_mode not in ("live", "final"):
         raise ValueError(f"map_mode must be live or final, got {map_mode!r}")
@@ -240,6 +246,7 @@ def run_offline(
         marks = [start_ns + int(step * (k + 1) * 1e9) for k in range(checkpoints)]
     by_growth = map_mode == "final" and checkpoints is None
     next_size = 0.0  # with by_growth: fit once the mapper holds this many observations
+    planted = sorted(inject, key=lambda o: o.t_ns)
 
     def tick(recv_ns: int) -> None:
         if progress is not None and recv_ns >= next_report[0]:
@@ -251,6 +258,8 @@ def run_offline(
         events.extend(batch_events)
         if not new:
             continue
+        while planted and planted[0].t_ns <= max(o.t_ns for o in new):
+            new.append(planted.pop(0))
         observations.extend(new)
         mapper.add(new)  # all of one detector output at once, as the live mapper receives it
         if map_mode == "live":
@@ -263,6 +272,9 @@ def run_offline(
         elif marks and max(o.t_ns for o in new) >= marks[0] and mapper.ready():
             marks.pop(0)
             _append_fit(fits, mapper.refit(), keep_meshes)
+    if planted:  # planted after the last detector output
+        observations.extend(planted)
+        mapper.add(planted)
     if mapper.pending and mapper.ready():
         _append_fit(fits, mapper.refit(), keep_meshes)
     if progress is not None:

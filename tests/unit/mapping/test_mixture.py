@@ -111,7 +111,7 @@ def thin_wall(thickness=0.2, seed=0):
     free space (the last group)."""
     rng = np.random.default_rng(seed)
     X, y, g = [], [], []
-    for k in range(5):
+    for _ in range(5):
         yz = [rng.uniform(0, 1.5), rng.uniform(0, 1.5)]
         for side, inward in ((0.0, 1.0), (thickness, -1.0)):
             c = np.array([side, *yz])
