@@ -118,6 +118,7 @@ class DetectorStats:
     samples: int = 0
     rejected: int = 0  # non-finite input
     no_pose: int = 0  # observations that could not be placed
+    left_contact: int = 0  # later samples of a push dropped: the vehicle had flown off
     contacts: int = 0  # contact events started
     observations: int = 0
 

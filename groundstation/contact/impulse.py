@@ -38,7 +38,8 @@ Observations
 An event with ``p_false < reject_p_false`` yields a contact observation (y = 0) at the **onset**
 (where the body met the structure, before it compressed the guard and rebounded): the body point
 facing ``-n`` (``contact/vehicle.py``) at the pose of that instant, an internal one ``d_in``
-behind it (y = -1), and more pairs at ``contact_rate_hz`` while a long push lasts; each carries
+behind it (y = -1), and more pairs at ``contact_rate_hz`` while a long push lasts and the
+vehicle stays within sliding reach of where it touched (``sustain_speed_mps``); each carries
 ``p_false``, the impulse ``dv_mps``, ``rebound`` and a placement uncertainty ``sigma_m``. Free
 space (y = +1) is the vehicle position every ``1 / external_rate_hz`` of data time and every
 ``external_spacing_m`` of path, not during an impulse nor within ``quiet_s`` after one.
@@ -551,11 +552,16 @@ class ImpulseDetector:
             + (v.reach_m * (1.0 - math.cos(noise_angle))) ** 2
         )
         out: list[Observation] = []
-        for r in rows:
+        p_on, t_on = c.p[on_row], int(c.t[on_row])
+        for k, r in enumerate(rows):
             pos = c.p[r]
             if not np.isfinite(pos).all():
                 self.stats.no_pose += 1
                 continue
+            reach = s.sustain_slack_m + s.sustain_speed_mps * (int(c.t[r]) - t_on) / 1e9
+            if np.isfinite(p_on).all() and float(np.linalg.norm(pos - p_on)) > reach:
+                self.stats.left_contact += len(rows) - k  # flown off: the rest is wind
+                break
             R = self._r_world(np.array([r]))[0] @ _C_FRD_FLU  # body FLU -> world ENU
             xc = pos + contact_offset(v, n, R)
             xin = xc - s.internal_depth_m * n

@@ -233,3 +233,24 @@ def test_the_bundled_evidence_model_loads_and_bad_files_are_named(tmp_path):
         EvidenceModel.load(bad)
     with pytest.raises(ConfigError, match="does not exist"):
         EvidenceModel.load(tmp_path / "none.json")
+
+
+def test_a_push_stops_making_contacts_once_the_vehicle_has_flown_off():
+    # a 0.6 s push of 15 m/s^2 peak along +y: pressed on a wall the vehicle stays put and every
+    # 25 Hz sample is a contact; free to move it flies off at up to 6 m/s, and what holds the
+    # impulse open is wind, not a structure (the SITL's gust-after-touch trails)
+    always_true = Logistic(("log_peak_g",), (0.0,), (1.0,), (0.0,), -10.0)
+    model = EvidenceModel(always_true, always_true, "test")
+    t, f, q, pos = flight(impulses=[(3.0, 0.6, 6.0, (0.0, 1.0, 0.0))])
+    pressed = pos.copy()
+    pressed[t >= t[0] + int(3.0e9)] = pos[t >= t[0] + int(3.0e9)][0]
+    det_p, obs_p = run((t, f, q, pressed), model=model)
+    det_f, obs_f = run((t, f, q, pos), model=model)
+    kept = [o for o in obs_p if o.label == LABEL_SURFACE]
+    flown = [o for o in obs_f if o.label == LABEL_SURFACE]
+    assert len(det_p.events) == len(det_f.events) == 1
+    assert len(kept) >= 12 and det_p.stats.left_contact == 0
+    assert 1 <= len(flown) < len(kept) // 2
+    assert det_f.stats.left_contact == len(kept) - len(flown)
+    spread = max(np.linalg.norm(np.asarray(o.position) - flown[0].position) for o in flown)
+    assert spread < 0.3  # nothing laid along the flight path
