@@ -27,6 +27,7 @@ TRUTH_METRICS: dict[str, str] = {
     "mesh_to_truth_median_m": "low",
     "truth_to_mesh_median_m": "low",
     "missing_share": "low",
+    "missing_share_near": "low",
     "phantom_area_m2": "low",
     "phantom_max_patch_m2": "low",
     "gust_events_flagged": "high",

@@ -19,6 +19,10 @@ Metrics (all distances in metres)
 ``truth_to_mesh_median_m``, ``missing_share``
     Over the touched true surface (within ``touched_radius_m`` of a true touch): median distance
     to the mesh, and the share farther than ``missing_m`` (0.1 m) from it: surface the map lacks.
+``missing_share_near``
+    The same share within ``near_radius_m`` (0.2 m) of a true touch: the surface the touches
+    themselves lie on. The gap between the two is surface the map would have to extrapolate
+    from 0.2 to 0.5 m beyond a touch (round a corner, down a face no touch reached).
 ``phantom_area_m2``, ``phantom_max_patch_m2``
     Mesh faces farther than ``phantom_m`` (0.15 m) from the true surface, joined into patches
     by shared vertices: their total area and the largest patch's (surface the map invents).
@@ -141,6 +145,7 @@ def surface_scores(
     truth: dict,
     *,
     touched_radius_m: float = 0.5,
+    near_radius_m: float = 0.2,
     spacing_m: float = 0.02,
     seed: int = 0,
     missing_m: float = 0.1,
@@ -157,6 +162,7 @@ def surface_scores(
         )
     }  # fmt: skip
     nan["missing_share"] = 1.0 if len(touched_points(truth)) else math.nan
+    nan["missing_share_near"] = nan["missing_share"]
     if mesh is None or mesh.is_empty:
         return nan
     scene = _scene(truth)
@@ -183,8 +189,10 @@ def surface_scores(
     if b.size:
         d_b, _ = cKDTree(mesh_pts).query(b)
         t2m, missing = float(np.median(d_b)), float(np.mean(d_b > missing_m))
+        near = _near(b, touched, near_radius_m)
+        missing_near = float(np.mean(d_b[near] > missing_m)) if near.any() else math.nan
     else:
-        t2m, missing = math.nan, math.nan
+        t2m, missing, missing_near = math.nan, math.nan, math.nan
     phantom, biggest = phantom_patches(mesh, scene, phantom_m)
     return {
         "chamfer_m": chamfer_distance(a, b),
@@ -193,6 +201,7 @@ def surface_scores(
         "mesh_to_truth_median_m": float(np.median(to_truth)),
         "truth_to_mesh_median_m": t2m,
         "missing_share": missing,
+        "missing_share_near": missing_near,
         "phantom_area_m2": phantom,
         "phantom_max_patch_m2": biggest,
     }

@@ -14,3 +14,29 @@ def test_without_a_mesh_all_touched_surface_is_missing_and_an_untouched_flight_m
     assert math.isnan(surface_scores(None, gusts_only)["missing_share"])
     assert math.isnan(surface_scores(None, {"contacts": []})["missing_share"])
     assert math.isnan(surface_scores(None, touched)["chamfer_m"])
+
+
+def test_near_missing_counts_only_the_surface_around_the_touches():
+    import numpy as np
+
+    from groundstation.mapping.surface import SurfaceMesh
+
+    # a wall x = 1 (a thin box), touched once at (1, 0, 1); the mesh is a 0.5 m square on the
+    # wall around the touch: all of the surface within 0.2 m is there, not all within 0.5 m
+    scene = {
+        "region": {"min": [-1, -2, 0], "max": [3, 2, 2]},
+        "objects": [{"type": "box", "min": [1.0, -2.0, 0.0], "max": [1.2, 2.0, 2.0]}],
+    }
+    truth = {"scene": scene, "contacts": [{"kind": "touch", "point": [1.0, 0.0, 1.0]}]}
+    n = 11
+    yy, zz = np.meshgrid(np.linspace(-0.25, 0.25, n), np.linspace(0.75, 1.25, n))
+    v = np.column_stack([np.ones(n * n), yy.ravel(), zz.ravel()])
+    faces = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a, b, c, d = i * n + j, i * n + j + 1, (i + 1) * n + j, (i + 1) * n + j + 1
+            faces += [[a, b, d], [a, d, c]]
+    mesh = SurfaceMesh(v, np.asarray(faces), np.tile([-1.0, 0.0, 0.0], (n * n, 1)))
+    s = surface_scores(mesh, truth)
+    assert s["missing_share_near"] < 0.02
+    assert s["missing_share"] > 0.3  # the wall's other face and the disk beyond 0.25 m
