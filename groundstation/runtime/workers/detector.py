@@ -79,8 +79,8 @@ DETECTOR_FINISHED = "detector finished"
 CHECKPOINT_FILE = "detector.ckpt"
 PUBLISHED_FILE = "detector.published"
 _CHECKPOINT_NS = 1_000_000_000
-# outputs per topic published again after a restart: far more than a send queue holds in the
-# moments before a SIGKILL (about 2 s of observations at the densest free-space sampling)
+# outputs per topic published again after a restart: far more than can sit in a send queue in
+# the moments before a SIGKILL (the CI failure lost the single last one)
 RESEND = 64
 
 
