@@ -10,7 +10,8 @@ at ``at`` of the flight, facing a seeded horizontal direction, with its internal
 then replays the flight through the whole pipeline on the live refit cadence with that contact
 handed to the mapper at its data time (``run_offline(inject=)``). It reports every refit's time,
 the refit that took the contact in (the issue's line: <= 1 s), and whether the final map flags
-the contact. Pure functions, one thin :func:`run` over the files.
+the contact. Pure functions; ``groundstation bench inject`` (``cli/bench.py``) loops over the
+files and writes the table.
 """
 
 from __future__ import annotations

@@ -258,8 +258,10 @@ def run_offline(
         events.extend(batch_events)
         if not new:
             continue
-        while planted and planted[0].t_ns <= max(o.t_ns for o in new):
-            new.append(planted.pop(0))
+        if planted:
+            t_new = max(o.t_ns for o in new)
+            while planted and planted[0].t_ns <= t_new:
+                new.append(planted.pop(0))
         observations.extend(new)
         mapper.add(new)  # all of one detector output at once, as the live mapper receives it
         if map_mode == "live":
