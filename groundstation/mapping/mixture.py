@@ -16,7 +16,7 @@ Fit (an EM on the two-component mixture, one responsibility per group)
 2. The GP is fitted with every group decided: precision ``1 / s_i^2`` for the rows of a group
    with ``r_g <= 1/2``, ``1 / s_out^2`` for the others (a classification EM: the mean-field
    expectation of the precision would let a 90 % false group still draw its phantom patch),
-   factorised in the B form (``_linalg.factorize``).
+   factorised in the B form (``_linalg.factorize_blocks``: only the blocks of P step 3 needs).
 3. Each *burst* (groups close in time and space: ``mapping/events.py``) is left out as a whole,
    in closed form from ``P = (K + W^-1)^-1``: ``e_B = P_BB^-1 a_B`` is the residual of the
    burst's labels from the prediction of the other data, ``P_BB^-1`` its covariance (R&W 5.4.2
@@ -51,7 +51,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from groundstation.errors import InputDataError, NotFittedError
-from groundstation.mapping._linalg import BFactor, factorize
+from groundstation.mapping._linalg import BlockFactor, factorize, factorize_blocks
 from groundstation.mapping.kernels import se_from_sq_dists, se_mixed, sq_dists
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -348,16 +348,21 @@ class EventMixtureGPIS:
         converged = False
         cycled = False
         seen: set[bytes] = set()
-        fac: BFactor | None = None
+        burst_rows = np.concatenate(bursts) if bursts else np.zeros(0, dtype=np.int64)
+        cuts = np.cumsum([0] + [b.size for b in bursts])
+        spans = [slice(int(cuts[k]), int(cuts[k + 1])) for k in range(len(bursts))]
+        fac: BlockFactor | None = None
+        K: np.ndarray | None = None
         llr = np.zeros_like(r)
         it = 0
         for it in range(1, self.max_iter + 1):
             w = self._precisions(s2, rg, in_group, r)
-            if it == 1 and self.learn_kernel:
-                ell, sf2 = self._kernel_step(D, w[is_val], resid[is_val], ell, sf2)
-            K = se_mixed(X, V, X, V, ell, sf2, center=center)
-            fac = factorize(K, None, w, resid, self.prior_mean, ell, keep_P=True)
-            llr = self._leave_burst_out(fac, w, s2, rg, bursts, r.size, is_val)
+            if K is None:  # the kernel is fixed after the first iteration
+                if self.learn_kernel:
+                    ell, sf2 = self._kernel_step(D, w[is_val], resid[is_val], ell, sf2)
+                K = se_mixed(X, V, X, V, ell, sf2, center=center)
+            fac = factorize_blocks(K, w, resid, self.prior_mean, burst_rows)
+            llr = self._leave_burst_out(fac, w, s2, rg, bursts, spans, r.size, is_val)
             logit = np.log(prior) - np.log1p(-prior) + llr + groups.extra_llr
             r_new = 1.0 / (1.0 + np.exp(-np.clip(logit, -50.0, 50.0)))
             delta = float(np.max(np.abs(r_new - r))) if r.size else 0.0
@@ -374,10 +379,11 @@ class EventMixtureGPIS:
                 # each other away; stop with the posteriors of this iteration
                 cycled = True
                 break
-        # the posterior of the final decisions
-        w = self._precisions(s2, rg, in_group, r)
-        K = se_mixed(X, V, X, V, ell, sf2, center=center)
-        fac = factorize(K, None, w, resid, self.prior_mean, ell)
+        # the posterior of the final decisions (the last factor already is, unless one flipped)
+        w_final = self._precisions(s2, rg, in_group, r)
+        if fac is None or not np.array_equal(w_final, w):
+            fac = factorize_blocks(K, w_final, resid, self.prior_mean, burst_rows[:0])
+        w = w_final
         self.X_train_, self.y_train_ = X, y
         self.posterior_false_ = r
         self.llr_ = llr
@@ -426,7 +432,9 @@ class EventMixtureGPIS:
         cuts = np.flatnonzero(np.diff(b_sorted)) + 1
         return np.split(rows, cuts)
 
-    def _leave_burst_out(self, fac: BFactor, w, s2, rg, bursts, n_groups, is_val) -> np.ndarray:
+    def _leave_burst_out(
+        self, fac: BlockFactor, w, s2, rg, bursts, spans, n_groups, is_val
+    ) -> np.ndarray:
         """llr (false vs true) of every group from its burst's leave-out residual.
 
         A group's rows are not independent evidence: its contact samples lie a few
@@ -437,9 +445,9 @@ class EventMixtureGPIS:
         ``N(e_g; 0, v_g + s_out^2)`` if false.
         """
         llr = np.zeros(n_groups)
-        P, a = fac.P, fac.a
-        for rows in bursts:
-            Pbb = P[np.ix_(rows, rows)]
+        a = fac.a
+        for rows, span in zip(bursts, spans, strict=True):
+            Pbb = fac.P_block(span)
             try:
                 Cb = np.linalg.inv(Pbb)
             except np.linalg.LinAlgError:

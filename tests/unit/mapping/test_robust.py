@@ -16,7 +16,7 @@ from threadpoolctl import threadpool_limits
 
 from groundstation.errors import ConfigError, ConvergenceWarning, InputDataError, NotFittedError
 from groundstation.mapping import GPIS, RobustGPIS
-from groundstation.mapping._linalg import FrozenPosterior, factorize
+from groundstation.mapping._linalg import FrozenPosterior, factorize, factorize_blocks
 from groundstation.mapping.kernels import se_from_sq_dists, se_kernel, sq_dists
 from groundstation.mapping.robust import (
     collapsed_elbo,
@@ -203,6 +203,25 @@ def test_b_form_matches_dense_and_collapsed_bound_equals_full_bound() -> None:
     assert l2 == pytest.approx(l2_dense, abs=1e-8)
     # L3 == L2 at the optimal q(f)
     assert collapsed_elbo(fac, at, bt, 1.2, 0.3) == pytest.approx(l2, abs=1e-9)
+
+
+def test_block_factor_matches_the_dense_inverse() -> None:
+    """The mixture's lean factorisation: P's blocks, the mean and the evidence against the
+    dense ``(K + W^-1)^-1`` and the full factorisation."""
+    X, y, _ = circle(20, 20, 2)
+    D = sq_dists(X)
+    ell, sf2, mu0 = 0.35, 0.8, 0.1
+    w = np.random.default_rng(3).uniform(0.5, 400.0, len(y))
+    K = se_from_sq_dists(D, ell, sf2)
+    P = np.linalg.inv(K + np.diag(1.0 / w))
+    rows = np.array([7, 3, 30, 31, 12])
+    blk = factorize_blocks(K, w, y - mu0, mu0, rows)
+    full = factorize(K, None, w, y - mu0, mu0, ell)
+    np.testing.assert_allclose(blk.P_block(slice(0, 2)), P[np.ix_([7, 3], [7, 3])], rtol=1e-9)
+    np.testing.assert_allclose(blk.P_block(slice(2, 5)), P[np.ix_(rows[2:], rows[2:])], rtol=1e-9)
+    np.testing.assert_allclose(blk.a, P @ (y - mu0), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(blk.m, full.m, rtol=1e-12)
+    assert blk.log_marginal(w) == pytest.approx(full.log_marginal(w), rel=1e-12)
 
 
 def test_each_coordinate_step_raises_the_dense_bound() -> None:
