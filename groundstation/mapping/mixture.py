@@ -357,7 +357,7 @@ class EventMixtureGPIS:
         it = 0
         for it in range(1, self.max_iter + 1):
             w = self._precisions(s2, rg, in_group, r)
-            if K is None:  # the kernel is fixed after the first iteration
+            if it == 1:  # the kernel is fixed after the first iteration
                 if self.learn_kernel:
                     ell, sf2 = self._kernel_step(D, w[is_val], resid[is_val], ell, sf2)
                 K = se_mixed(X, V, X, V, ell, sf2, center=center)
