@@ -12,6 +12,9 @@ sequence of named policy steps:
    ones from their prior), so a refit moves only what the new data moves;
 4. :meth:`~SurfaceModel.estimate`: the event-mixture EM (``mapping/mixture.py``), at most
    ``refit_max_iter`` iterations when warm (``max_iter`` cold);
+5. :meth:`~SurfaceModel.settle`: events trusted for ``settle_after_s`` are settled, their rows
+   pooled per voxel from the next fit on (rows then grow with the area touched, not with the
+   time spent touching it);
 
 and :meth:`SurfaceModel.mesh` evaluates the field in a narrow band around its zero set on a grid
 over the *data's* region (:meth:`~SurfaceModel.region`: every observation plus a margin, clipped
@@ -95,6 +98,7 @@ def training_policy(
         tangent_slope_noise=mapping.tangent_slope_noise,
         plane_reach_m=mapping.plane_reach_m,
         plane_noise_per_m=mapping.plane_noise_per_m,
+        settled_voxel_m=mapping.settled_voxel_m,
     )
 
 
@@ -162,12 +166,13 @@ class SurfaceModel:
         self._n_theta = 0
         self._tiles: dict[tuple, _TileFit] = {}
         self._layout = TileLayout(mapping.tile_m)
+        self._settled: set[tuple] = set()
 
     # ------------------------------------------------------------------ policy steps
 
     def rows(self, observations: Sequence[Observation]) -> TrainingSet:
-        """Step 1: rows, groups, priors, bursts, swept-volume evidence."""
-        return build_training_set(observations, self.policy)
+        """Step 1: rows, groups, priors, bursts, swept-volume evidence; settled events pooled."""
+        return build_training_set(observations, self.policy, frozenset(self._settled))
 
     def learn_kernel_now(self, ts: TrainingSet) -> bool:
         """Step 2: learn the kernel at the first fit and when the rows grew markedly."""
@@ -176,16 +181,11 @@ class SurfaceModel:
             return False
         return self._theta is None or len(ts) > ms.theta_refit_growth * self._n_theta
 
-    @staticmethod
-    def _key(ts: TrainingSet, g: int) -> tuple:
-        ev = int(ts.event_ids[g])
-        return ("e", ev) if ev >= 0 else ("o", int(ts.group_ids[g].min()))
-
     def warm_start(self, ts: TrainingSet) -> np.ndarray:
         """Step 3: each event's posterior from the last fit, its prior when new."""
         start = ts.groups.prior_false.copy()
         for g in range(start.size):
-            p = self._posterior_by_event.get(self._key(ts, g))
+            p = self._posterior_by_event.get(ts.keys[g])
             if p is not None:
                 start[g] = p
         return start
@@ -237,8 +237,9 @@ class SurfaceModel:
             ms = self.mapping
             self._theta = self.bounds.clip(max(ms.lengthscale, ms.lengthscale_min), ms.signal_var)
         layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * self._theta[0]))
+        shape = ts.y <= 0.0  # contact, internal and tangent rows (pooled or in a group)
         if learn:  # on the tile with the most rows: theta is shared by every tile
-            keys = layout.keys(ts.X[ts.groups.row_group >= 0])
+            keys = layout.keys(ts.X[shape])
             uniq, counts = np.unique(keys, axis=0, return_counts=True)
             key = tuple(int(v) for v in uniq[int(np.argmax(counts))])
             rows = layout.members(ts.X, key)
@@ -247,10 +248,7 @@ class SurfaceModel:
             self._theta = (est.lengthscale_, est.signal_var_)
             self._tiles = {}  # a new kernel: every tile refits and re-meshes
             layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * self._theta[0]))
-        grouped = ts.groups.row_group >= 0
-        tile_keys = {
-            tuple(int(v) for v in k) for k in np.unique(layout.keys(ts.X[grouped]), axis=0)
-        }
+        tile_keys = {tuple(int(v) for v in k) for k in np.unique(layout.keys(ts.X[shape]), axis=0)}
         decided = start > 0.5
         fitted: dict[tuple, _TileFit] = {}
         for key in sorted(tile_keys):
@@ -266,7 +264,7 @@ class SurfaceModel:
             fitted[key] = _TileFit(key, rows, gidx, sig, est, None)
         self._tiles = fitted
         self._layout = layout
-        post = ts.groups.prior_false.copy()
+        post = start.copy()  # a settled group (no rows, in no tile) keeps its posterior
         owner = self._group_owner(ts, layout)
         for g in range(post.size):
             tile = fitted.get(owner[g])
@@ -311,11 +309,12 @@ class SurfaceModel:
             t1 = time.perf_counter()
             post = self.estimate(ts, start, learn)
             t2 = time.perf_counter()
+            self.settle(ts, post, max(int(o.t_ns) for o in observations))
         if learn:
             self._n_theta = len(ts)
         self.training_set_ = ts
         self.posterior_false_ = post
-        self._posterior_by_event = {self._key(ts, g): float(p) for g, p in enumerate(post)}
+        self._posterior_by_event = {ts.keys[g]: float(p) for g, p in enumerate(post)}
         fits = [f.est.fit_ for f in self._tiles.values()]
         ell, sf2 = self._theta
         self.summary_ = MixtureFit(
@@ -336,8 +335,19 @@ class SurfaceModel:
             "fit_s": t2 - t1,
             "tiles": float(len(self._tiles)),
             "tiles_refit": float(sum(f.mesh is None for f in self._tiles.values())),
+            "settled": float(ts.settled.sum()),
         }
         return self.summary_
+
+    def settle(self, ts: TrainingSet, post: np.ndarray, t_last_ns: int) -> None:
+        """Step 5: events trusted (``settle_p_false``) and older than ``settle_after_s`` are
+        settled: from the next fit on their rows are pooled and their fate is frozen."""
+        ms = self.mapping
+        if ms.settle_p_false <= 0:
+            return
+        old = ts.t_end_ns <= t_last_ns - int(ms.settle_after_s * 1e9)
+        for g in np.flatnonzero(old & (post <= ms.settle_p_false) & ~ts.settled):
+            self._settled.add(ts.keys[int(g)])
 
     def _check(self) -> None:
         if self.fit_ is None:
@@ -448,7 +458,7 @@ class SurfaceModel:
         """(k, d) contact and internal rows of the events decided true: where surface can be."""
         ts = self.training_set_
         g = ts.groups.row_group
-        trusted = np.zeros(len(ts), dtype=bool)
+        trusted = np.ones(len(ts), dtype=bool)  # free space (y > 0) is dropped below
         ok = g >= 0
         trusted[ok] = self.posterior_false_[g[ok]] <= 0.5
         value = np.einsum("ij,ij->i", ts.directions, ts.directions) == 0.0

@@ -71,6 +71,19 @@ class MappingSettings:
     flag_tol : float
         The mixture's EM stops when no event's posterior moves by more than this (or by more
         than ten times this while no decision flips).
+    settle_p_false : float
+        An event whose posterior P(false) is at most this at a refit, and that ended at least
+        ``settle_after_s`` before the newest observation, is *settled* (mixture, live refits):
+        its fate is frozen as true and its contact and internal rows are pooled with every
+        other settled event's per ``settled_voxel_m`` voxel (a pooled row carries the summed
+        precision of the rows it replaces). Rows then grow with the touched area, not with the
+        time spent sliding over it: on the dense sliding session (``bench pareto --scenes
+        session40``) a revisited patch otherwise adds rows at every stroke. A settled event is
+        no longer re-tested: later free space through it does not flag it. 0: never settle.
+    settle_after_s : float
+        Age (after its last sample) at which a trusted event may settle, seconds of data time.
+    settled_voxel_m : float
+        Voxel edge of the settled pool, metres.
     tile_m : float
         Edge of the cubic tiles the map is fitted in (mixture; ``mapping/tiles.py``): each is
         fitted on its rows plus a halo of three length scales, and only tiles whose data changed
@@ -222,6 +235,9 @@ class MappingSettings:
     mixture_max_iter: int = 12
     tangent_slope_noise: float = 2.0
     tile_m: float = 2.0
+    settle_p_false: float = 0.05
+    settle_after_s: float = 60.0
+    settled_voxel_m: float = 0.1
     plane_reach_m: float = 0.0
     plane_noise_per_m: float = 0.5
     model: Literal["robust", "gpis"] = "robust"
@@ -285,6 +301,7 @@ class MappingSettings:
             "free_voxel_m",
             "burst_radius_m",
             "flag_tol",
+            "settled_voxel_m",
         ):
             value = getattr(self, name)
             if not value > 0:
@@ -296,6 +313,10 @@ class MappingSettings:
                 f"mapping.lengthscale_min {self.lengthscale_min!r} must not exceed "
                 f"lengthscale_max {self.lengthscale_max!r}"
             )
+        if not 0 <= self.settle_p_false < 0.5:
+            raise ValueError(
+                f"mapping.settle_p_false must be in [0, 0.5), got {self.settle_p_false!r}"
+            )
         if not 0 < self.prior_false < 1:
             raise ValueError(f"mapping.prior_false must be in (0, 1), got {self.prior_false!r}")
         for name in (
@@ -304,6 +325,7 @@ class MappingSettings:
             "sweep_exclude_s",
             "sweep_tolerance_m",
             "burst_llr",
+            "settle_after_s",
         ):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"mapping.{name} must be >= 0, got {getattr(self, name)!r}")

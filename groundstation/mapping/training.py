@@ -26,6 +26,14 @@
   tapping one spot three times in seconds is rare (in the SITL flights no touch burst of three
   occurred while 30 % of the gusts started clusters; the ratio is capped at e^3 = 20 so that
   other visits to the same patch can still vouch for it).
+- **Settled events.** Events named in ``settled`` (a live mapper settles an event once it has
+  been trusted for a while: ``MappingSettings.settle_p_false``) no longer form groups: their
+  contact and internal rows are pooled per ``settled_voxel_m`` voxel and face (the axis
+  their normal points along most: the two faces of an edge are not averaged) across events, each
+  pooled row at the precision-weighted mean of the rows it replaces, with their summed
+  precision (the same evidence, in rows bounded by the touched area). The tangent-plane rows
+  of one settled event per voxel stay, trusted. Settled groups keep their bookkeeping (ids,
+  time span) and no rows.
 - **Swept volume.** The vehicle's body cannot have passed through a surface: a contact point
   that lies inside the body (``body_radius_m`` around a free-space centre, ``body_half_height_m``
   above and below) at a free-space sample taken at least ``sweep_exclude_s`` away from the event
@@ -69,6 +77,7 @@ class TrainingPolicy:
     tangent_slope_noise: float = 0.0
     plane_reach_m: float = 0.0
     plane_noise_per_m: float = 0.5
+    settled_voxel_m: float = 0.1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,6 +103,12 @@ class TrainingSet:
         Observation ids of each group (contacts and internal points).
     swept : (G,) bool
         The group's contact lies in the body's swept volume.
+    keys : tuple of tuple
+        Stable identity of each group (:func:`group_key`).
+    t_end_ns : (G,) int64
+        Time of each group's last observation.
+    settled : (G,) bool
+        The group was settled: its rows are in the trusted pool (row group -1).
     n_raw : int
         Observations given.
     """
@@ -107,10 +122,18 @@ class TrainingSet:
     event_ids: np.ndarray
     group_ids: tuple[np.ndarray, ...]
     swept: np.ndarray
+    keys: tuple[tuple, ...]
+    t_end_ns: np.ndarray
+    settled: np.ndarray
     n_raw: int
 
     def __len__(self) -> int:
         return int(self.X.shape[0])
+
+
+def group_key(event_id: int, ids: Sequence[int]) -> tuple:
+    """A group's identity across refits: its detector event, else its first observation."""
+    return ("e", int(event_id)) if event_id >= 0 else ("o", int(min(ids)))
 
 
 def _event_keys(obs: Sequence[Observation], gap_ns: int) -> dict[int, tuple]:
@@ -138,11 +161,14 @@ class _Group:
     t: list[int] = dataclasses.field(default_factory=list)
     contacts: list[np.ndarray] = dataclasses.field(default_factory=list)
     normals: list[np.ndarray] = dataclasses.field(default_factory=list)
-    cells: dict = dataclasses.field(default_factory=dict)  # (label, voxel) -> [ids, xs, s2s]
+    cells: dict = dataclasses.field(default_factory=dict)  # (label, voxel) -> [ids, xs, s2s, ns]
 
 
-def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> TrainingSet:
-    """Rows, groups, priors, bursts and swept-volume evidence of ``obs`` (any order)."""
+def build_training_set(
+    obs: Sequence[Observation], policy: TrainingPolicy, settled: frozenset = frozenset()
+) -> TrainingSet:
+    """Rows, groups, priors, bursts and swept-volume evidence of ``obs`` (any order);
+    ``settled``: the :func:`group_key` of the groups to pool (module docstring)."""
     p = policy
     obs = sorted(obs, key=lambda o: o.id)
     slope = abs(p.inside_value) / p.internal_depth_m
@@ -176,10 +202,11 @@ def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> Tr
             grp.normals.append(np.asarray(o.normal, dtype=np.float64))
         sig = o.sigma_m if math.isfinite(o.sigma_m) else 0.0
         cell = (int(o.label), *np.floor(x / p.contact_voxel_m).astype(np.int64).tolist())
-        ids, xs, s2s = grp.cells.setdefault(cell, ([], [], []))
+        ids, xs, s2s, ns = grp.cells.setdefault(cell, ([], [], [], []))
         ids.append(o.id)
         xs.append(x)
         s2s.append(p.contact_noise**2 + (slope * sig) ** 2)
+        ns.append(np.asarray(o.normal, dtype=np.float64))
     glist = list(groups.values())
     d = (
         len(rows_X[0])
@@ -187,14 +214,34 @@ def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> Tr
         else (len(glist[0].contacts[0]) if glist and glist[0].contacts else 3)
     )
     dirs = [np.zeros(d)] * len(rows_X)
+    gkeys = tuple(group_key(grp.event_id, grp.ids) for grp in glist)
+    is_settled = np.array([k in settled for k in gkeys], dtype=bool)
+    pool: dict[tuple, list] = {}  # (label, coarse voxel) -> [ids, sum w x, sum w]
     for g, grp in enumerate(glist):
-        for (label, *_), (ids, xs, s2s) in grp.cells.items():
-            rows_X.append(np.mean(xs, axis=0))  # a group's samples in one voxel: one row
+        for (label, *_), (ids, xs, s2s, ns) in grp.cells.items():
+            x, s2 = np.mean(xs, axis=0), float(np.mean(s2s))  # a group's voxel: one row
+            if is_settled[g]:  # pooled per voxel and face (two faces of an edge stay apart)
+                cell = (label, _face(np.mean(ns, axis=0)),
+                        *np.floor(x / p.settled_voxel_m).astype(np.int64).tolist())  # fmt: skip
+                acc = pool.setdefault(cell, [[], np.zeros(d), 0.0])
+                acc[0].extend(ids)
+                acc[1] += x / s2
+                acc[2] += 1.0 / s2
+                continue
+            rows_X.append(x)
             rows_y.append(0.0 if label == 0 else p.inside_value)
-            rows_s2.append(float(np.mean(s2s)))
+            rows_s2.append(s2)
             rows_m.append(np.asarray(ids, dtype=np.int64))
             rows_g.append(g)
             dirs.append(np.zeros(d))
+    for (label, *_), (ids, wx, w) in sorted(pool.items()):
+        rows_X.append(wx / w)
+        rows_y.append(0.0 if label == 0 else p.inside_value)
+        rows_s2.append(1.0 / w)
+        rows_m.append(np.asarray(sorted(ids), dtype=np.int64))
+        rows_g.append(-1)
+        dirs.append(np.zeros(d))
+    tangent_cells: set[tuple] = set()
     if p.tangent_slope_noise > 0 and d == 3:
         for g, grp in enumerate(glist):
             if not grp.contacts:
@@ -207,13 +254,18 @@ def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> Tr
             a /= np.linalg.norm(a)
             b = np.cross(n, a)
             centre = np.mean(grp.contacts, axis=0)
+            if is_settled[g]:  # settled: one event's tangents per voxel (rows bounded by area)
+                cell = tuple(np.floor(centre / p.settled_voxel_m).astype(np.int64).tolist())
+                if cell in tangent_cells:
+                    continue
+                tangent_cells.add(cell)
             none = np.zeros(0, dtype=np.int64)
             for v in (a, b):
                 rows_X.append(centre)
                 rows_y.append(0.0)
                 rows_s2.append(p.tangent_slope_noise**2)
                 rows_m.append(none)
-                rows_g.append(g)
+                rows_g.append(-1 if is_settled[g] else g)
                 dirs.append(v)
             if p.plane_reach_m > 0:
                 rho = p.plane_reach_m
@@ -223,7 +275,7 @@ def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> Tr
                     rows_y.append(0.0)
                     rows_s2.append(s2_plane)
                     rows_m.append(none)
-                    rows_g.append(g)
+                    rows_g.append(-1 if is_settled[g] else g)
                     dirs.append(np.zeros(d))
     X = np.asarray(rows_X, dtype=np.float64).reshape(-1, d)
     prior = np.array(
@@ -255,8 +307,19 @@ def build_training_set(obs: Sequence[Observation], policy: TrainingPolicy) -> Tr
         event_ids=np.asarray([grp.event_id for grp in glist], dtype=np.int64),
         group_ids=tuple(np.asarray(grp.ids, dtype=np.int64) for grp in glist),
         swept=swept,
+        keys=gkeys,
+        t_end_ns=np.asarray([hi for _, hi in t_span], dtype=np.int64),
+        settled=is_settled,
         n_raw=len(obs),
     )
+
+
+def _face(n: np.ndarray) -> int:
+    """The signed axis a normal points along most (+1..+d, -1..-d; 0 for none)."""
+    if not np.all(np.isfinite(n)) or float(np.abs(n).max(initial=0.0)) == 0.0:
+        return 0
+    k = int(np.argmax(np.abs(n)))
+    return (k + 1) * (1 if n[k] > 0 else -1)
 
 
 def _bursts(

@@ -215,3 +215,32 @@ def test_training_set_groups_bursts_priors_and_the_swept_volume():
     assert b[0] == b[1] != b[2]  # 1 s and 0.1 m apart: one burst; event 2 far off
     assert list(ts.swept) == [False, False, True]
     assert ts.groups.extra_llr[2] == policy.sweep_llr
+
+
+def test_settled_events_are_pooled_with_their_summed_precision():
+    """Two settled events in one 0.1 m voxel become one trusted row (per label) at their
+    precision-weighted mean with the summed precision; an unsettled one keeps its group."""
+    policy = TrainingPolicy(settled_voxel_m=0.1, contact_voxel_m=0.05)
+    o = [
+        obs(0, 0.0, [0.0, 0.01, 1.01], 0, 0), obs(1, 0.0, [-0.1, 0.01, 1.01], -1, 0),
+        obs(2, 9.0, [0.0, 0.07, 1.03], 0, 1), obs(3, 9.0, [-0.1, 0.07, 1.03], -1, 1),
+        obs(4, 20.0, [0.0, 0.05, 1.02], 0, 2), obs(5, 20.0, [-0.1, 0.05, 1.02], -1, 2),
+        obs(6, 5.0, [1.0, 0.0, 1.0], 1, -1),
+    ]  # fmt: skip
+    plain = build_training_set(o, policy)
+    keys = frozenset(plain.keys[:2])
+    ts = build_training_set(o, policy, keys)
+    assert list(ts.settled) == [True, True, False] and ts.keys == plain.keys
+    rg = ts.groups.row_group
+    assert np.sum(rg == 2) == np.sum(plain.groups.row_group == 2) == 2
+    for label in (0.0, policy.inside_value):
+        old = (plain.y == label) & np.isin(plain.groups.row_group, [0, 1])
+        new = (ts.y == label) & (rg == -1)
+        assert new.sum() == 1
+        w_old = 1.0 / plain.noise_var[old]
+        assert 1.0 / ts.noise_var[new][0] == pytest.approx(w_old.sum())
+        np.testing.assert_allclose(ts.X[new][0], w_old @ plain.X[old] / w_old.sum())
+        assert set(ts.row_members[int(np.flatnonzero(new)[0])].tolist()) == set(
+            np.concatenate([plain.row_members[k] for k in np.flatnonzero(old)]).tolist()
+        )
+    assert [g.tolist() for g in ts.group_ids] == [g.tolist() for g in plain.group_ids]

@@ -79,7 +79,9 @@ def test_only_tiles_whose_data_changed_are_refitted():
                     p_false=o.p_false, sigma_m=o.sigma_m)
         for k, o in enumerate(obs)
     ]  # fmt: skip
-    model = SurfaceModel(MappingSettings(theta_refit_growth=10.0), SurfaceSettings())
+    model = SurfaceModel(
+        MappingSettings(theta_refit_growth=10.0, settle_p_false=0.0), SurfaceSettings()
+    )
     model.fit(obs)
     model.mesh()
     assert model.timings_["tiles"] >= 2
@@ -114,3 +116,53 @@ def test_tiles_agree_with_one_big_fit_inside_their_cores():
     a.fit(obs)
     b.fit(obs)
     assert np.allclose(a.predict(q), b.predict(q), atol=0.05)
+
+
+def sliding_strokes(n_strokes, seed=0):
+    """Strokes sliding along the face x = 0 (y, z in 0..1): 25 Hz contacts with their internal
+    points over 0.5 m, one event per stroke, an approach path before each, 5 s apart."""
+    rng = np.random.default_rng(seed)
+    n = np.array([1.0, 0.0, 0.0])
+    out, i, t = [], 0, 0.0
+    for e in range(n_strokes):
+        a = np.array([0.0, *rng.uniform(0.1, 0.9, 2)])
+        step = np.array([0.0, *rng.normal(size=2)])
+        b = a + 0.5 * step / np.linalg.norm(step)
+        b[1:] = np.clip(b[1:], 0.05, 0.95)
+        for k in range(6):
+            out.append(Observation(i, int(t * S), a + (0.8 - 0.1 * k) * n, 1.0, np.zeros(3), -1,
+                                   0.0))  # fmt: skip
+            i, t = i + 1, t + 0.1
+        for f in np.linspace(0.0, 1.0, 50):
+            c = a + f * (b - a) + np.array([rng.normal(0.0, 0.005), 0.0, 0.0])
+            for x, label in ((c, 0.0), (c - 0.1 * n, -1.0)):
+                out.append(Observation(i, int(t * S), x, label, n, e, 3.0, p_false=0.05,
+                                       sigma_m=0.005))  # fmt: skip
+                i += 1
+            t += 0.04
+        t += 3.0
+    return out
+
+
+def test_settled_events_bound_the_rows_by_area_and_keep_the_surface():
+    """A face slid over again and again: settled strokes pool their rows per voxel, so the rows
+    stop growing with the strokes, and the face and the strokes' fates stay what they were."""
+    obs = sliding_strokes(60)
+    cuts = [max(k for k, o in enumerate(obs) if o.event_id == e) + 1 for e in (29, 44, 59)]
+    rows = {}
+    for settle in (0.05, 0.0):
+        model = SurfaceModel(MappingSettings(settle_p_false=settle), SurfaceSettings())
+        rows[settle] = []
+        for k in [cuts[0] // 2, *cuts]:
+            model.fit(obs[:k])
+            rows[settle].append(len(model.training_set_))
+        post = model.event_posteriors()
+        assert max(post.values()) < 0.5 and len(post) == 60
+        v = model.mesh().vertices
+        face = (v[:, 1] > 0.2) & (v[:, 1] < 0.8) & (v[:, 2] > 0.2) & (v[:, 2] < 0.8)
+        assert np.median(np.abs(v[face, 0])) < 0.02
+        if settle:
+            assert model.training_set_.settled.sum() >= 30  # strokes older than settle_after_s
+    grow_settled = rows[0.05][-1] - rows[0.05][-3]
+    grow_plain = rows[0.0][-1] - rows[0.0][-3]
+    assert grow_plain > 300 and grow_settled < grow_plain / 3, (rows, grow_settled, grow_plain)
