@@ -340,13 +340,18 @@ class SurfaceModel:
         return self.summary_
 
     def settle(self, ts: TrainingSet, post: np.ndarray, t_last_ns: int) -> None:
-        """Step 5: events trusted (``settle_p_false``) and older than ``settle_after_s`` are
-        settled: from the next fit on their rows are pooled and their fate is frozen."""
+        """Step 5: events trusted (``settle_p_false``), corroborated by the rest of the data
+        (``settle_evidence_nats``) and older than ``settle_after_s`` are settled: from the
+        next fit on their rows are pooled and their fate is frozen."""
         ms = self.mapping
         if ms.settle_p_false <= 0:
             return
         old = ts.t_end_ns <= t_last_ns - int(ms.settle_after_s * 1e9)
-        for g in np.flatnonzero(old & (post <= ms.settle_p_false) & ~ts.settled):
+        prior = np.clip(ts.groups.prior_false, 1e-6, 1 - 1e-6)
+        p = np.clip(post, 1e-12, 1 - 1e-12)
+        moved = (np.log(p) - np.log1p(-p)) - (np.log(prior) - np.log1p(-prior))
+        ok = (post <= ms.settle_p_false) & (moved <= -ms.settle_evidence_nats)
+        for g in np.flatnonzero(old & ok & ~ts.settled):
             self._settled.add(ts.keys[int(g)])
 
     def _check(self) -> None:

@@ -72,8 +72,10 @@ class MappingSettings:
         The mixture's EM stops when no event's posterior moves by more than this (or by more
         than ten times this while no decision flips).
     settle_p_false : float
-        An event whose posterior P(false) is at most this at a refit, and that ended at least
-        ``settle_after_s`` before the newest observation, is *settled* (mixture, live refits):
+        An event whose posterior P(false) is at most this at a refit, whose odds of being false
+        the rest of the data lowered by ``settle_evidence_nats`` at least (corroborated, not
+        just trusted by its prior), and that ended at least ``settle_after_s`` before the
+        newest observation, is *settled* (mixture, live refits and ``--map final``'s fits):
         its fate is frozen as true and its contact and internal rows are pooled with every
         other settled event's per ``settled_voxel_m`` voxel (a pooled row carries the summed
         precision of the rows it replaces). Rows then grow with the touched area, not with the
@@ -82,6 +84,11 @@ class MappingSettings:
         no longer re-tested: later free space through it does not flag it. 0: never settle.
     settle_after_s : float
         Age (after its last sample) at which a trusted event may settle, seconds of data time.
+    settle_evidence_nats : float
+        How much the data must have lowered an event's log odds of being false before it may
+        settle. On the tuning flights an event with the detector's prior 0.008 and nothing
+        near it settled at 60 s, and a later flag (the nosettle run) no longer reached it:
+        its phantom patch grew from 0.29 to 1.19 m^2.
     settled_voxel_m : float
         Voxel edge of the settled pool, metres.
     tile_m : float
@@ -237,6 +244,7 @@ class MappingSettings:
     tile_m: float = 2.0
     settle_p_false: float = 0.05
     settle_after_s: float = 60.0
+    settle_evidence_nats: float = 0.7
     settled_voxel_m: float = 0.1
     plane_reach_m: float = 0.0
     plane_noise_per_m: float = 0.5
@@ -326,6 +334,7 @@ class MappingSettings:
             "sweep_tolerance_m",
             "burst_llr",
             "settle_after_s",
+            "settle_evidence_nats",
         ):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"mapping.{name} must be >= 0, got {getattr(self, name)!r}")

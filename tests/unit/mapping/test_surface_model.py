@@ -146,8 +146,14 @@ def sliding_strokes(n_strokes, seed=0):
 
 def test_settled_events_bound_the_rows_by_area_and_keep_the_surface():
     """A face slid over again and again: settled strokes pool their rows per voxel, so the rows
-    stop growing with the strokes, and the face and the strokes' fates stay what they were."""
-    obs = sliding_strokes(60)
+    stop growing with the strokes, and the face and the strokes' fates stay what they were. A
+    lone touch that only its detector prior vouches for is not settled, however old."""
+    n = np.array([1.0, 0.0, 0.0])
+    lone = np.array([0.0, 4.0, 0.5])
+    obs = [
+        Observation(k, int(0.5 * S), x, label, n, 999, 3.0, p_false=0.008, sigma_m=0.005)
+        for k, (x, label) in enumerate(((lone, 0.0), (lone - 0.1 * n, -1.0)), start=10**6)
+    ] + sliding_strokes(60)
     cuts = [max(k for k, o in enumerate(obs) if o.event_id == e) + 1 for e in (29, 44, 59)]
     rows = {}
     for settle in (0.05, 0.0):
@@ -157,12 +163,14 @@ def test_settled_events_bound_the_rows_by_area_and_keep_the_surface():
             model.fit(obs[:k])
             rows[settle].append(len(model.training_set_))
         post = model.event_posteriors()
-        assert max(post.values()) < 0.5 and len(post) == 60
+        assert max(post.values()) < 0.5 and len(post) == 61
         v = model.mesh().vertices
         face = (v[:, 1] > 0.2) & (v[:, 1] < 0.8) & (v[:, 2] > 0.2) & (v[:, 2] < 0.8)
         assert np.median(np.abs(v[face, 0])) < 0.02
         if settle:
-            assert model.training_set_.settled.sum() >= 30  # strokes older than settle_after_s
+            ts = model.training_set_
+            assert ts.settled.sum() >= 30  # strokes older than settle_after_s
+            assert not ts.settled[list(ts.event_ids).index(999)]
     grow_settled = rows[0.05][-1] - rows[0.05][-3]
     grow_plain = rows[0.0][-1] - rows[0.0][-3]
     assert grow_plain > 300 and grow_settled < grow_plain / 3, (rows, grow_settled, grow_plain)
