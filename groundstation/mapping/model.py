@@ -171,8 +171,14 @@ class SurfaceModel:
     # ------------------------------------------------------------------ policy steps
 
     def rows(self, observations: Sequence[Observation]) -> TrainingSet:
-        """Step 1: rows, groups, priors, bursts, swept-volume evidence; settled events pooled."""
-        return build_training_set(observations, self.policy, frozenset(self._settled))
+        """Step 1: rows, groups, priors, bursts, swept-volume evidence; settled events pooled,
+        except those the vehicle's body has since passed through (they are tested again)."""
+        ts = build_training_set(observations, self.policy, frozenset(self._settled))
+        refuted = [ts.keys[g] for g in np.flatnonzero(ts.settled & ts.swept)]
+        if refuted:
+            self._settled.difference_update(refuted)
+            ts = build_training_set(observations, self.policy, frozenset(self._settled))
+        return ts
 
     def learn_kernel_now(self, ts: TrainingSet) -> bool:
         """Step 2: learn the kernel at the first fit and when the rows grew markedly."""

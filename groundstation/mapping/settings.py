@@ -81,7 +81,8 @@ class MappingSettings:
         precision of the rows it replaces). Rows then grow with the touched area, not with the
         time spent sliding over it: on the dense sliding session (``bench pareto --scenes
         session40``) a revisited patch otherwise adds rows at every stroke. A settled event is
-        no longer re-tested: later free space through it does not flag it. 0: never settle.
+        re-tested only when the vehicle's body later passes through it (its swept volume); other
+        later evidence no longer reaches it. 0: never settle.
     settle_after_s : float
         Age (after its last sample) at which a trusted event may settle, seconds of data time.
     settle_evidence_nats : float

@@ -174,3 +174,21 @@ def test_settled_events_bound_the_rows_by_area_and_keep_the_surface():
     grow_settled = rows[0.05][-1] - rows[0.05][-3]
     grow_plain = rows[0.0][-1] - rows[0.0][-3]
     assert grow_plain > 300 and grow_settled < grow_plain / 3, (rows, grow_settled, grow_plain)
+
+
+def test_a_settled_event_the_body_later_passes_through_is_tested_again():
+    obs = sliding_strokes(30)
+    model = SurfaceModel(MappingSettings(), SurfaceSettings())
+    half = max(k for k, o in enumerate(obs) if o.event_id == 14) + 1
+    model.fit(obs[:half])
+    model.fit(obs)
+    ts = model.training_set_
+    g = int(np.flatnonzero(ts.settled)[0])
+    c = np.mean([o.position for o in obs if o.event_id == ts.event_ids[g] and o.label == 0], axis=0)
+    t = obs[-1].t_ns + S
+    through = Observation(10**6, t, c, 1.0, np.zeros(3), -1, 0.0)  # the body's centre on it
+    settled_p = model.event_posteriors()[int(ts.event_ids[g])]
+    model.fit([*obs, through])
+    ts = model.training_set_
+    assert ts.swept[g] and not ts.settled[g]
+    assert model.event_posteriors()[int(ts.event_ids[g])] > max(0.1, 10 * settled_p)  # not frozen
