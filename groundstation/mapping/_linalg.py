@@ -78,6 +78,22 @@ class BFactor:
         return -0.5 * self.r_a - 0.5 * (self.logdet_B - np.sum(np.log(w))) - 0.5 * n * LOG_2PI
 
 
+def _cholesky_B(K: np.ndarray, sw: np.ndarray) -> np.ndarray:
+    """Lower Cholesky factor (Fortran order, upper triangle zero) of ``B = I + W^1/2 K W^1/2``."""
+    n = K.shape[0]
+    B = K * sw[:, None]
+    B *= sw[None, :]
+    B.flat[:: n + 1] += 1.0
+    # B is symmetric: hand LAPACK its transpose (Fortran order) so potrf works in place.
+    L, info = lapack.dpotrf(B.T, lower=1, clean=1, overwrite_a=1)
+    if info != 0:
+        raise FactorizationError(
+            f"Cholesky of B = I + W^1/2 K W^1/2 failed (info={info})",
+            hint="check the inputs and hyperparameters for NaN/inf",
+        )
+    return L
+
+
 def factorize(
     K: np.ndarray,
     D: np.ndarray | None,
@@ -113,17 +129,7 @@ def factorize(
     """
     n = K.shape[0]
     sw = np.sqrt(w)
-    B = K * sw[:, None]
-    B *= sw[None, :]
-    B.flat[:: n + 1] += 1.0
-    # B is symmetric: hand LAPACK its transpose (Fortran order) so potrf works in place.
-    L, info = lapack.dpotrf(B.T, lower=1, clean=1, overwrite_a=1)
-    if info != 0:
-        raise FactorizationError(
-            f"Cholesky of B = I + W^1/2 K W^1/2 failed (info={info})",
-            hint="check the inputs and hyperparameters for NaN/inf",
-        )
-    del B
+    L = _cholesky_B(K, sw)
     z, info = lapack.dpotrs(L, sw * r, lower=1)
     a = sw * z
     Ka = K @ a
@@ -290,16 +296,7 @@ def factorize_blocks(
     """
     n = K.shape[0]
     sw = np.sqrt(w)
-    B = K * sw[:, None]
-    B *= sw[None, :]
-    B.flat[:: n + 1] += 1.0
-    L, info = lapack.dpotrf(B.T, lower=1, clean=1, overwrite_a=1)
-    if info != 0:
-        raise FactorizationError(
-            f"Cholesky of B = I + W^1/2 K W^1/2 failed (info={info})",
-            hint="check the inputs and hyperparameters for NaN/inf",
-        )
-    del B
+    L = _cholesky_B(K, sw)
     z, _ = lapack.dpotrs(L, sw * r, lower=1)
     a = sw * z
     rows = np.asarray(rows, dtype=np.int64)
