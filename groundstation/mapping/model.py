@@ -234,11 +234,6 @@ class SurfaceModel:
             gidx,
         )
 
-    def _tile_layout(self) -> TileLayout:
-        """Tiles of ``tile_m`` with a halo of three length scales (beyond, the kernel is
-        e^-4.5 = 1 % of its peak: a tile's core is predicted as one fit of everything would)."""
-        return TileLayout(self.mapping.tile_m, 3.0 * self._theta[0])
-
     def estimate(self, ts: TrainingSet, start: np.ndarray, learn: bool) -> np.ndarray:
         """Step 4: the event-mixture EM, tile by tile (``mapping/tiles.py``): only tiles whose
         rows, priors or decisions changed are refitted. Returns the posterior P(false) of every
@@ -247,7 +242,7 @@ class SurfaceModel:
         if self._theta is None:
             ms = self.mapping
             self._theta = self.bounds.clip(max(ms.lengthscale, ms.lengthscale_min), ms.signal_var)
-        layout = self._tile_layout()
+        layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * self._theta[0]))
         shape = ts.y <= 0.0  # contact, internal and tangent rows (pooled or in a group)
         if learn:  # on the tile with the most rows: theta is shared by every tile
             keys = layout.keys(ts.X[shape])
@@ -258,7 +253,7 @@ class SurfaceModel:
             est = self._estimator(True, warm).fit(X, y, s2, groups, start=st, directions=V)
             self._theta = (est.lengthscale_, est.signal_var_)
             self._tiles = {}  # a new kernel: every tile refits and re-meshes
-            layout = self._tile_layout()
+            layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * self._theta[0]))
         tile_keys = {tuple(int(v) for v in k) for k in np.unique(layout.keys(ts.X[shape]), axis=0)}
         decided = start > 0.5
         fitted: dict[tuple, _TileFit] = {}
