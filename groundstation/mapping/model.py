@@ -489,11 +489,16 @@ class SurfaceModel:
 
     def _tile_grid(self, key: tuple, s: float) -> Grid | None:
         """The tile's core on the global lattice of spacing ``s``, within the configured clip
-        (the data's box needs no cut: nothing is evaluated beyond reach of its contacts)."""
+        (the data's box needs no cut: nothing is evaluated beyond reach of its contacts).
+
+        A tile's grid runs from the first lattice plane in its core to the first plane of the
+        next tile, so neighbours share that plane: every cell of the lattice is meshed by
+        exactly one tile, also when ``s`` does not divide the tile edge (otherwise a face lying
+        between the two tiles' last planes, such as a wall on a tile boundary, is lost)."""
         lo, hi = self._layout.core(key)
         clo, chi = self._clip()
-        lo, hi = np.maximum(lo, clo), np.minimum(hi, chi)
-        i0, i1 = np.ceil(lo / s - 1e-9), np.floor(hi / s + 1e-9)
+        i0 = np.ceil(np.maximum(lo, clo) / s - 1e-9)
+        i1 = np.minimum(np.ceil(hi / s - 1e-9), np.floor(chi / s + 1e-9))
         if np.any(i1 - i0 < 1):
             return None
         return Grid.from_bounds(i0 * s, i1 * s, s)

@@ -71,6 +71,22 @@ def test_a_configured_region_only_clips_and_is_reported():
     assert mesh.is_empty or mesh.vertices[:, 0].min() >= -1e-9
 
 
+def test_a_face_on_a_tile_boundary_is_meshed_whatever_the_grid_spacing():
+    # the face x = 2 is the boundary of two 2 m tiles; the grid spacing l / 5 = 0.07 m does not
+    # divide 2 m, so the tiles' last lattice planes (1.96 and 2.03 m) straddle the face
+    from scipy.spatial import cKDTree
+
+    fixed = MappingSettings(optimize=False, lengthscale=0.35, signal_var=1.0, tile_m=2.0)
+    model = SurfaceModel(fixed, SurfaceSettings(spacing=0.05, voxels_per_lengthscale=5.0))
+    model.fit(box_flight((2.0, 0.0, 0.0), gusts=()))
+    assert 2.0 / model.spacing_m() % 1.0 > 0.1
+    mesh = model.mesh()
+    g = np.linspace(0.25, 0.75, 11)
+    face = np.array([[2.0, y, z] for y in g for z in g])
+    d, _ = cKDTree(mesh.vertices).query(face)
+    assert d.max() < 0.05
+
+
 def test_only_tiles_whose_data_changed_are_refitted():
     obs = box_flight() + box_flight((6.0, 0.0, 0.0), seed=1, gusts=())
     obs = [
