@@ -244,10 +244,8 @@ class SurfaceModel:
             self._theta = self.bounds.clip(max(ms.lengthscale, ms.lengthscale_min), ms.signal_var)
         layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * self._theta[0]))
         shape = ts.y <= 0.0  # contact, internal and tangent rows (pooled or in a group)
-        if learn:  # on the tile with the most rows: theta is shared by every tile
-            keys = layout.keys(ts.X[shape])
-            uniq, counts = np.unique(keys, axis=0, return_counts=True)
-            key = tuple(int(v) for v in uniq[int(np.argmax(counts))])
+        if learn:  # theta is shared by every tile: learnt where the most surface is
+            key = self._learning_tile(ts, start, layout)
             rows = layout.members(ts.X, key)
             X, y, s2, V, groups, st, _ = self._subset(ts, rows, start)
             est = self._estimator(True, warm).fit(X, y, s2, groups, start=st, directions=V)
@@ -279,6 +277,25 @@ class SurfaceModel:
             if tile is not None:
                 post[g] = tile.est.posterior_false_[tile.local[g]]
         return post
+
+    @staticmethod
+    def _learning_tile(ts: TrainingSet, start: np.ndarray, layout: TileLayout) -> tuple:
+        """The tile whose core holds the most surface evidence: shape rows (contact, internal,
+        tangent) weighted by their event's current belief of being true, 1 - P(false).
+
+        Counting every shape row picked, on a MuJoCo wall flight, the tile where a gust
+        cluster pushed the drone (24 rows of flagged gusts against 18 of touches): its
+        evidence, free space and a few contacts, rose without bound in l, and the whole map
+        was meshed at the 0.5 m cap (a 0.2 m wall drawn 0.1 m too thick; 36 % of the touched
+        surface missing, against none in the same flight without gusts)."""
+        rg = ts.groups.row_group
+        trust = np.ones(len(ts))
+        ok = rg >= 0
+        trust[ok] = 1.0 - start[rg[ok]]
+        shape = ts.y <= 0.0
+        uniq, inv = np.unique(layout.keys(ts.X[shape]), axis=0, return_inverse=True)
+        weight = np.bincount(inv.reshape(-1), weights=trust[shape], minlength=len(uniq))
+        return tuple(int(v) for v in uniq[int(np.argmax(weight))])
 
     @staticmethod
     def _group_owner(ts: TrainingSet, layout: TileLayout) -> list[tuple]:

@@ -87,6 +87,28 @@ def test_a_face_on_a_tile_boundary_is_meshed_whatever_the_grid_spacing():
     assert d.max() < 0.05
 
 
+def test_the_kernel_is_learnt_where_the_trusted_surface_is_not_where_gusts_pile_up():
+    from groundstation.mapping.tiles import TileLayout
+
+    touches = box_flight((0.5, 0.5, 0.5), gusts=())  # 25 touch events in tile (0, 0, 0)
+    rng = np.random.default_rng(3)
+    n = np.array([1.0, 0.0, 0.0])
+    gusts, i, t = [], len(touches), 400.0
+    for e in range(40):  # a gust cluster in tile (2, 0, 0): more rows, all believed false
+        c = np.array([4.5, 0.5, 0.5]) + rng.normal(0.0, 0.05, 3)
+        gusts.append(Observation(i, int(t * S), c, 0.0, n, 200 + e, 2.0, p_false=0.9,
+                                 sigma_m=0.005))  # fmt: skip
+        gusts.append(Observation(i + 1, int(t * S), c - 0.1 * n, -1.0, n, 200 + e, 2.0,
+                                 p_false=0.9, sigma_m=0.005))  # fmt: skip
+        i, t = i + 2, t + 0.5
+    model = SurfaceModel(MappingSettings(), SurfaceSettings())
+    ts = model.rows(touches + gusts)
+    layout = TileLayout(2.0)
+    shape_keys = [tuple(k) for k in layout.keys(ts.X[ts.y <= 0.0])]
+    assert shape_keys.count((2, 0, 0)) > shape_keys.count((0, 0, 0))  # the gusts have more
+    assert model._learning_tile(ts, model.warm_start(ts), layout) == (0, 0, 0)
+
+
 def test_only_tiles_whose_data_changed_are_refitted():
     obs = box_flight() + box_flight((6.0, 0.0, 0.0), seed=1, gusts=())
     obs = [
