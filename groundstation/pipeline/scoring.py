@@ -26,6 +26,8 @@ Metrics (all distances in metres)
 ``phantom_area_m2``, ``phantom_max_patch_m2``
     Mesh faces farther than ``phantom_m`` (0.15 m) from the true surface, joined into patches
     by shared vertices: their total area and the largest patch's (surface the map invents).
+    Here, in ``mesh_to_truth_median_m`` and in ``shape_error_m`` the true surface includes the
+    floor (:func:`distance_to_world`): a drone pushed onto it has touched real surface.
 ``gust_events_flagged``, ``touch_events_flagged``
     Shares of detected events matched to truth gusts / touches that the map flags false.
 ``fp_precision``, ``fp_recall``
@@ -121,6 +123,17 @@ def _scene(truth: dict):
     return parse_scene(truth["scene"], truth["scene"].get("name", "scene"))
 
 
+def distance_to_world(scene, points: np.ndarray) -> np.ndarray:
+    """(n,) distance, metres, of ``points`` to the nearest real surface: the structures or the
+    floor. Both engines have a floor plane at the region's bottom that the drone touches (truth
+    kind ``ground``, e.g. a gust pushing it down); a mesh drawn there is surface that exists,
+    not surface the map invents. The floor is not *touched* surface: what the map must cover
+    (``missing_share``, Chamfer) stays the structures near true touches."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    d = np.abs(scene.signed_distance(pts))
+    return np.minimum(d, np.abs(pts[:, 2] - float(scene.region_min[2])))
+
+
 def touched_points(truth: dict) -> np.ndarray:
     """(k, 3) true contact points of touches (kinds touch/slow_touch)."""
     pts = [
@@ -185,7 +198,7 @@ def surface_scores(
         verts = verts[rng.choice(len(verts), 20000, replace=False)]
     from scipy.spatial import cKDTree
 
-    to_truth = np.abs(scene.signed_distance(mesh_pts))
+    to_truth = distance_to_world(scene, mesh_pts)
     if b.size:
         d_b, _ = cKDTree(mesh_pts).query(b)
         t2m, missing = float(np.median(d_b)), float(np.mean(d_b > missing_m))
@@ -197,7 +210,7 @@ def surface_scores(
     return {
         "chamfer_m": chamfer_distance(a, b),
         "chamfer_full_m": chamfer_distance(mesh_pts, true_pts),
-        "shape_error_m": float(np.mean(np.abs(scene.signed_distance(verts)))),
+        "shape_error_m": float(np.mean(distance_to_world(scene, verts))),
         "mesh_to_truth_median_m": float(np.median(to_truth)),
         "truth_to_mesh_median_m": t2m,
         "missing_share": missing,
@@ -215,7 +228,7 @@ def phantom_patches(mesh: SurfaceMesh, scene, phantom_m: float) -> tuple[float, 
 
     v, f = mesh.vertices, mesh.faces
     cent = v[f].mean(axis=1)
-    far = np.abs(scene.signed_distance(cent)) > phantom_m
+    far = distance_to_world(scene, cent) > phantom_m
     if not far.any():
         return 0.0, 0.0
     ff = f[far]

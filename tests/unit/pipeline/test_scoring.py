@@ -40,3 +40,33 @@ def test_near_missing_counts_only_the_surface_around_the_touches():
     s = surface_scores(mesh, truth)
     assert s["missing_share_near"] < 0.02
     assert s["missing_share"] > 0.3  # the wall's other face and the disk beyond 0.25 m
+
+
+def test_a_mesh_on_the_floor_is_real_surface_and_one_below_it_is_phantom():
+    import numpy as np
+
+    from groundstation.mapping.surface import SurfaceMesh
+
+    # a 1 m square drawn at height z0 far from the only structure: on the floor (z = 0, the
+    # region's bottom, which both engines' drones can touch) it exists; 0.5 m below, it does not
+    scene = {
+        "region": {"min": [-1, -2, 0], "max": [3, 2, 2]},
+        "objects": [{"type": "box", "min": [1.0, -2.0, 0.0], "max": [1.2, 2.0, 2.0]}],
+    }
+    truth = {"scene": scene, "contacts": [{"kind": "touch", "point": [1.0, 0.0, 1.0]}]}
+    n = 11
+    xx, yy = np.meshgrid(np.linspace(-0.9, 0.1, n), np.linspace(-1.0, 0.0, n))
+    faces = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a, b, c, d = i * n + j, i * n + j + 1, (i + 1) * n + j, (i + 1) * n + j + 1
+            faces += [[a, b, d], [a, d, c]]
+
+    def square(z0):
+        v = np.column_stack([xx.ravel(), yy.ravel(), np.full(n * n, z0)])
+        return SurfaceMesh(v, np.asarray(faces), np.tile([0.0, 0.0, 1.0], (n * n, 1)))
+
+    assert surface_scores(square(0.02), truth)["phantom_max_patch_m2"] == 0.0
+    below = surface_scores(square(-0.5), truth)
+    assert below["phantom_max_patch_m2"] > 0.9
+    assert below["mesh_to_truth_median_m"] > 0.4
