@@ -253,16 +253,18 @@ class Mapper:
         return self._n_contacts >= s.min_contacts and self._n_external >= 1
 
     # -- refit ---------------------------------------------------------------------------------
-    def refit(self) -> FitResult:
+    def refit(self, learn_kernel: bool = False) -> FitResult:
         """Refit on every observation held (see the module docstring). Never raises for a
-        failed fit: the result is then ``reliable=False`` and keeps the last good mesh."""
+        failed fit: the result is then ``reliable=False`` and keeps the last good mesh.
+        ``learn_kernel``: the map engine v2 learns its kernel at this fit even if the data
+        have not grown enough since it last did (a final map's last fit)."""
         obs = self.observations()
         self.fit_index += 1
         self._new = self._new_contacts = self._new_inside = 0
         data_ns = max(o.t_ns for o in obs) if obs else 0
         self._last_fit_ns = data_ns
         if isinstance(self._model, SurfaceModel):
-            return self._refit_mixture(obs, data_ns)
+            return self._refit_mixture(obs, data_ns, learn_kernel)
         ids = np.array([o.id for o in obs], dtype=np.int64)
         X = np.array([o.position for o in obs], dtype=np.float64).reshape(-1, 3)
         y = np.array([o.label for o in obs], dtype=np.float64)
@@ -313,14 +315,16 @@ class Mapper:
             timings, hyper, False, reasons, fallback,
         )  # fmt: skip
 
-    def _refit_mixture(self, obs: list[Observation], data_ns: int) -> FitResult:
+    def _refit_mixture(
+        self, obs: list[Observation], data_ns: int, learn_kernel: bool = False
+    ) -> FitResult:
         """A refit of the mixture engine: fit, mesh, flags by posterior per event."""
         s, model = self.settings, self._model
         ids = np.array([o.id for o in obs], dtype=np.int64)
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         try:
-            summary = model.fit(obs)
+            summary = model.fit(obs, learn_kernel=learn_kernel)
             mesh = None
             if s.with_mesh:
                 t1 = time.perf_counter()

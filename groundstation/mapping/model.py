@@ -248,6 +248,12 @@ class SurfaceModel:
             key = self._learning_tile(ts, start, layout)
             rows = layout.members(ts.X, key)
             X, y, s2, V, groups, st, _ = self._subset(ts, rows, start)
+            # the kernel step weighs each row by its event's decision: decide the events that
+            # are new since the last fit with the current kernel first, so that a gust still
+            # at its prior does not pull the kernel smoother (and the kernel learnt does not
+            # depend on how many fits came before: live cadence or --map final)
+            pre = self._estimator(False, warm).fit(X, y, s2, groups, start=st, directions=V)
+            st = pre.posterior_false_
             est = self._estimator(True, warm).fit(X, y, s2, groups, start=st, directions=V)
             self._theta = (est.lengthscale_, est.signal_var_)
             self._tiles = {}  # a new kernel: every tile refits and re-meshes
@@ -314,8 +320,10 @@ class SurfaceModel:
 
     # ------------------------------------------------------------------ fit
 
-    def fit(self, observations: Sequence[Observation]) -> MixtureFit:
+    def fit(self, observations: Sequence[Observation], learn_kernel: bool = False) -> MixtureFit:
         """Fit to every observation so far (module docstring); returns the fit summary.
+        ``learn_kernel``: learn the kernel at this fit whatever step 2 says (if
+        ``mapping.optimize``).
 
         Raises
         ------
@@ -327,7 +335,7 @@ class SurfaceModel:
             ts = self.rows(observations)
             if len(ts) < 2 or ts.groups.prior_false.size == 0:
                 raise InputDataError("need at least one contact and one other observation")
-            learn = self.learn_kernel_now(ts)
+            learn = self.learn_kernel_now(ts) or (learn_kernel and self.mapping.optimize)
             start = self.warm_start(ts)
             t1 = time.perf_counter()
             post = self.estimate(ts, start, learn)

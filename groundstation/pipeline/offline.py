@@ -278,7 +278,8 @@ def run_offline(
         observations.extend(planted)
         mapper.add(planted)
     if mapper.pending and mapper.ready():
-        _append_fit(fits, mapper.refit(), keep_meshes)
+        # the final map's kernel is learnt on everything, not on the last checkpoint's data
+        _append_fit(fits, mapper.refit(learn_kernel=map_mode == "final"), keep_meshes)
     if progress is not None:
         progress(duration, duration, len(fits), _begins(events))
     return PipelineResult(

@@ -109,6 +109,24 @@ def test_the_kernel_is_learnt_where_the_trusted_surface_is_not_where_gusts_pile_
     assert model._learning_tile(ts, model.warm_start(ts), layout) == (0, 0, 0)
 
 
+def test_a_fit_asked_to_learn_the_kernel_learns_it_on_everything():
+    # --map final's last fit: the data grew less than theta_refit_growth since the kernel was
+    # last learnt, but the final map's kernel is learnt on all of it
+    obs = box_flight(seed=4)
+    part = obs[: int(len(obs) * 0.85)]
+    kept, asked, cold = (SurfaceModel(MappingSettings(), SurfaceSettings()) for _ in range(3))
+    kept.fit(part)
+    before = kept.signal_var_
+    kept.fit(obs)
+    asked.fit(part)
+    asked.fit(obs, learn_kernel=True)
+    cold.fit(obs)
+    assert kept.signal_var_ == before
+    assert asked.signal_var_ != before
+    assert asked.signal_var_ == pytest.approx(cold.signal_var_, rel=1e-4)
+    assert asked.lengthscale_ == pytest.approx(cold.lengthscale_, rel=1e-4)
+
+
 def test_only_tiles_whose_data_changed_are_refitted():
     obs = box_flight() + box_flight((6.0, 0.0, 0.0), seed=1, gusts=())
     obs = [
