@@ -59,7 +59,11 @@ NEAR_M = 0.5  # Chamfer looks at mesh and truth within this of a true touch
 MISSING_M = 0.1
 PHANTOM_M = 0.15
 #: The previous default mapper's settings (what the legacy engine was measured with).
-LEGACY_SETTINGS = ("mapping.engine=legacy", "mapping.lengthscale_min=0.35")
+LEGACY_SETTINGS = (
+    "mapping.engine=legacy",
+    "mapping.lengthscale_min=0.35",
+    "mapping.prior_mean=0.0",
+)
 
 
 # --------------------------------------------------------------------------- measuring

@@ -92,7 +92,7 @@ def measure(quick: bool = False, chunk_mb: float = 64.0) -> list[dict]:
     _, s, mb = _timed(warm.fit, observations)
     tiles = f"{int(warm.timings_['tiles_refit'])} of {int(warm.timings_['tiles'])} tiles refitted"
     _row(rows, "3D default mapper warm refit (+2 % observations)", len(y), s, mb, tiles)
-    legacy_settings = MappingSettings(engine="legacy", lengthscale_min=0.35)
+    legacy_settings = MappingSettings(engine="legacy", lengthscale_min=0.35, prior_mean=0.0)
     legacy = LegacySurfaceModel(legacy_settings, surface)
     _, s, mb = _timed(legacy.fit, X, y, ids, t)
     _row(rows, "3D previous default (legacy engine) cold fit", len(y), s, mb,
