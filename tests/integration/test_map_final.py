@@ -6,8 +6,8 @@ live-cadence replay's final map: Chamfer distance and the share of touched surfa
 worse (within ``TOL_CHAMFER_M`` / ``TOL_MISSING``: 0.5 mm and 0.2 percentage points, so that a
 BLAS with another summation order does not flip a tie), gust events flagged no fewer and touch
 events flagged no more, with fewer fits. Measured on this revision (final / live): Chamfer
-0.0611 / 0.0617, 0.0528 / 0.0530, 0.0891 / 0.0892 m; missing 0.330 / 0.338, 0.069 / 0.079,
-0.589 / 0.590 (wall survey, pillar, slow-touch wall).
+0.0663 / 0.0668, 0.0493 / 0.0505, 0.0755 / 0.0755 m; missing 0.432 / 0.437, 0.095 / 0.098,
+0.559 / 0.559 (wall survey, pillar, slow-touch wall).
 """
 
 from __future__ import annotations
