@@ -7,6 +7,18 @@ import math
 from groundstation.pipeline.scoring import surface_scores
 
 
+def _grid_faces(n):
+    """Triangles of an n x n grid of vertices numbered row by row."""
+    import numpy as np
+
+    faces = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a, b, c, d = i * n + j, i * n + j + 1, (i + 1) * n + j, (i + 1) * n + j + 1
+            faces += [[a, b, d], [a, d, c]]
+    return np.asarray(faces)
+
+
 def test_without_a_mesh_all_touched_surface_is_missing_and_an_untouched_flight_misses_none():
     touched = {"contacts": [{"kind": "touch", "point": [1.0, 0.0, 1.0], "start": 3.0}]}
     gusts_only = {"contacts": [{"kind": "gust", "point": None, "start": 3.0}]}
@@ -31,12 +43,8 @@ def test_near_missing_counts_only_the_surface_around_the_touches():
     n = 11
     yy, zz = np.meshgrid(np.linspace(-0.25, 0.25, n), np.linspace(0.75, 1.25, n))
     v = np.column_stack([np.ones(n * n), yy.ravel(), zz.ravel()])
-    faces = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, c, d = i * n + j, i * n + j + 1, (i + 1) * n + j, (i + 1) * n + j + 1
-            faces += [[a, b, d], [a, d, c]]
-    mesh = SurfaceMesh(v, np.asarray(faces), np.tile([-1.0, 0.0, 0.0], (n * n, 1)))
+    faces = _grid_faces(n)
+    mesh = SurfaceMesh(v, faces, np.tile([-1.0, 0.0, 0.0], (n * n, 1)))
     s = surface_scores(mesh, truth)
     assert s["missing_share_near"] < 0.02
     assert s["missing_share"] > 0.3  # the wall's other face and the disk beyond 0.25 m
@@ -56,15 +64,11 @@ def test_a_mesh_on_the_floor_is_real_surface_and_one_below_it_is_phantom():
     truth = {"scene": scene, "contacts": [{"kind": "touch", "point": [1.0, 0.0, 1.0]}]}
     n = 11
     xx, yy = np.meshgrid(np.linspace(-0.9, 0.1, n), np.linspace(-1.0, 0.0, n))
-    faces = []
-    for i in range(n - 1):
-        for j in range(n - 1):
-            a, b, c, d = i * n + j, i * n + j + 1, (i + 1) * n + j, (i + 1) * n + j + 1
-            faces += [[a, b, d], [a, d, c]]
+    faces = _grid_faces(n)
 
     def square(z0):
         v = np.column_stack([xx.ravel(), yy.ravel(), np.full(n * n, z0)])
-        return SurfaceMesh(v, np.asarray(faces), np.tile([0.0, 0.0, 1.0], (n * n, 1)))
+        return SurfaceMesh(v, faces, np.tile([0.0, 0.0, 1.0], (n * n, 1)))
 
     assert surface_scores(square(0.02), truth)["phantom_max_patch_m2"] == 0.0
     below = surface_scores(square(-0.5), truth)
