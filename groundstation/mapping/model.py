@@ -5,9 +5,10 @@ sequence of named policy steps:
 
 1. :meth:`~SurfaceModel.rows`: observations to rows, event groups with their detector priors,
    bursts and the swept-volume evidence (``mapping/training.py``);
-2. :meth:`~SurfaceModel.learn_kernel_now`: the kernel hyperparameters are learnt on all rows at
-   the first fit and whenever the rows grew by ``theta_refit_growth`` since they last were (a
-   covered structure stops growing, so its refits keep them);
+2. :meth:`~SurfaceModel.learn_kernel_now`: the kernel hyperparameters are learnt once the data
+   identify them (``learn_min_events`` trusted events in the learning tile; until then the
+   configured ones hold) and again whenever the rows grew by ``theta_refit_growth`` since they
+   last were (a covered structure stops growing, so its refits keep them);
 3. :meth:`~SurfaceModel.warm_start`: every event starts from its posterior of the last fit (new
    ones from their prior), so a refit moves only what the new data moves;
 4. :meth:`~SurfaceModel.estimate`: the event-mixture EM (``mapping/mixture.py``), at most
@@ -164,6 +165,7 @@ class SurfaceModel:
         self._posterior_by_event: dict[tuple, float] = {}
         self._theta: tuple[float, float] | None = None
         self._n_theta = 0
+        self._theta_learnt = False
         self._tiles: dict[tuple, _TileFit] = {}
         self._layout = TileLayout(mapping.tile_m)
         self._settled: set[tuple] = set()
@@ -181,11 +183,12 @@ class SurfaceModel:
         return ts
 
     def learn_kernel_now(self, ts: TrainingSet) -> bool:
-        """Step 2: learn the kernel at the first fit and when the rows grew markedly."""
+        """Step 2: learn the kernel until it has been learnt once (:meth:`estimate` decides
+        whether the data identify it yet) and then when the rows grew markedly."""
         ms = self.mapping
         if not ms.optimize:
             return False
-        return self._theta is None or len(ts) > ms.theta_refit_growth * self._n_theta
+        return not self._theta_learnt or len(ts) > ms.theta_refit_growth * self._n_theta
 
     def warm_start(self, ts: TrainingSet) -> np.ndarray:
         """Step 3: each event's posterior from the last fit, its prior when new."""
@@ -234,10 +237,16 @@ class SurfaceModel:
             gidx,
         )
 
-    def estimate(self, ts: TrainingSet, start: np.ndarray, learn: bool) -> np.ndarray:
+    def estimate(self, ts: TrainingSet, start: np.ndarray, learn: bool) -> tuple[np.ndarray, bool]:
         """Step 4: the event-mixture EM, tile by tile (``mapping/tiles.py``): only tiles whose
         rows, priors or decisions changed are refitted. Returns the posterior P(false) of every
-        group (from the tile holding its contacts' centroid)."""
+        group (from the tile holding its contacts' centroid) and whether the kernel was learnt.
+
+        A kernel step needs ``learn_min_events`` events the data trust (P(false) < 0.5) in the
+        learning tile; with fewer the kernel holds. Free space alone (every row +1) is fitted
+        best by the smoothest field, so a kernel learnt on one touch amid free space went to
+        the 0.5 m cap, and the touch was then flagged for being alone (issue 13, Build point 6:
+        three contact-free tuning flights lost their only touch and their whole map)."""
         warm = self._theta is not None
         if self._theta is None:
             ms = self.mapping
@@ -252,12 +261,17 @@ class SurfaceModel:
             # are new since the last fit with the current kernel first, so that a gust still
             # at its prior does not pull the kernel smoother (and the kernel learnt does not
             # depend on how many fits came before: live cadence or --map final)
-            pre = self._estimator(False, warm).fit(X, y, s2, groups, start=st, directions=V)
-            st = pre.posterior_false_
-            est = self._estimator(True, warm).fit(X, y, s2, groups, start=st, directions=V)
-            self._theta = (est.lengthscale_, est.signal_var_)
-            self._tiles = {}  # a new kernel: every tile refits and re-meshes
-            layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * self._theta[0]))
+            learn = self._identified(st)
+            if learn:
+                pre = self._estimator(False, warm).fit(X, y, s2, groups, start=st, directions=V)
+                st = pre.posterior_false_
+                learn = self._identified(st)
+            if learn:
+                est = self._estimator(True, warm).fit(X, y, s2, groups, start=st, directions=V)
+                self._theta = (est.lengthscale_, est.signal_var_)
+                self._theta_learnt = True
+                self._tiles = {}  # a new kernel: every tile refits and re-meshes
+                layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * self._theta[0]))
         tile_keys = {tuple(int(v) for v in k) for k in np.unique(layout.keys(ts.X[shape]), axis=0)}
         decided = start > 0.5
         fitted: dict[tuple, _TileFit] = {}
@@ -282,7 +296,11 @@ class SurfaceModel:
                 tile = next((f for f in fitted.values() if g in f.local), None)
             if tile is not None:
                 post[g] = tile.est.posterior_false_[tile.local[g]]
-        return post
+        return post, learn
+
+    def _identified(self, p_false: np.ndarray) -> bool:
+        """Whether events with these P(false) identify the kernel (``learn_min_events``)."""
+        return int(np.sum(p_false < 0.5)) >= self.mapping.learn_min_events
 
     @staticmethod
     def _learning_tile(ts: TrainingSet, start: np.ndarray, layout: TileLayout) -> tuple:
@@ -338,10 +356,10 @@ class SurfaceModel:
             learn = self.learn_kernel_now(ts) or (learn_kernel and self.mapping.optimize)
             start = self.warm_start(ts)
             t1 = time.perf_counter()
-            post = self.estimate(ts, start, learn)
+            post, learnt = self.estimate(ts, start, learn)
             t2 = time.perf_counter()
             self.settle(ts, post, max(int(o.t_ns) for o in observations))
-        if learn:
+        if learnt:
             self._n_theta = len(ts)
         self.training_set_ = ts
         self.posterior_false_ = post

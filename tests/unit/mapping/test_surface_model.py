@@ -248,3 +248,42 @@ def test_a_settled_event_the_body_later_passes_through_is_tested_again():
     ts = model.training_set_
     assert ts.swept[g] and not ts.settled[g]
     assert model.event_posteriors()[int(ts.event_ids[g])] > max(0.1, 10 * settled_p)  # not frozen
+
+
+def lone_touch_flight(back_through: bool):
+    """A pass along y at 0.5 m/s (free points 0.1 m apart) with one touch on its rim at y = 2 m
+    (contact at x = 0.7, nothing else touched; uniform prior); with ``back_through`` the
+    vehicle later flies back along x = 0.7, through where the contact lies."""
+    out, i = [], 0
+    for k in range(41):
+        out.append(Observation(i, int(0.2 * k * S), np.array([0.5, 0.1 * k, 1.0]), 1.0,
+                               np.zeros(3), -1, 0.0))  # fmt: skip
+        i += 1
+    n = np.array([-1.0, 0.0, 0.0])  # the structure's normal faces the vehicle
+    c = np.array([0.7, 2.0, 1.0])
+    for k in range(3):
+        t = int((4.0 + 0.04 * k) * S)
+        out.append(Observation(i, t, c, 0.0, n, 7, 2.0))
+        out.append(Observation(i + 1, t, c - 0.1 * n, -1.0, n, 7, 2.0))
+        i += 2
+    if back_through:
+        for k in range(41):
+            back = np.array([0.7, 4.0 - 0.1 * k, 1.0])
+            out.append(Observation(i, int((10.0 + 0.2 * k) * S), back, 1.0, np.zeros(3), -1, 0.0))
+            i += 1
+    return sorted(out, key=lambda o: o.t_ns)
+
+
+def test_a_lone_touch_nothing_contradicts_stays_trusted_and_one_flown_through_is_flagged():
+    # free space alone fits the smoothest field best: a kernel learnt on it (one touch cannot
+    # pin it) went to the 0.5 m cap and flagged the touch for being alone (Build point 6)
+    ms = MappingSettings()
+    alone = SurfaceModel(ms, SurfaceSettings())
+    alone.fit(lone_touch_flight(back_through=False), learn_kernel=True)
+    assert alone.lengthscale_ == pytest.approx(ms.lengthscale)  # the data do not identify it
+    assert alone.event_posteriors()[7] < 0.5
+    assert not alone.mesh().is_empty  # its patch is drawn
+    through = SurfaceModel(ms, SurfaceSettings())
+    through.fit(lone_touch_flight(back_through=True), learn_kernel=True)
+    assert through.training_set_.swept[0]  # the body later passed through it: that is evidence
+    assert through.event_posteriors()[7] > 0.5
