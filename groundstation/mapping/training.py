@@ -13,8 +13,8 @@
 - **Tangent planes.** A contact says the surface passes there with normal n; where touches are
   sparse the GP would otherwise draw a blob around each. Each event adds two rows at its contact
   centroid: the derivative of the potential along two tangents of n is 0, with noise
-  ``tangent_slope_noise`` (label units per metre: a normal off by 20 deg on a potential rising
-  5 per metre), so the surface goes on flat for about a length scale.
+  ``tangent_slope_noise`` (label units per metre: 1 is a normal off by ~12 deg on a potential
+  rising 5 per metre), so the surface goes on flat for about a length scale.
 - **Groups.** The rows of one contact event form a group (contacts without an event id are
   grouped into runs no more than ``event_gap_s`` apart in time). Its prior ``P(false)`` is the
   detector's ``p_false`` (mean over its rows) where known, else ``prior_false``.
