@@ -164,8 +164,7 @@ class SurfaceModel:
         self.timings_: dict[str, float] = {}
         self._posterior_by_event: dict[tuple, float] = {}
         self._theta: tuple[float, float] | None = None
-        self._n_theta = 0
-        self._theta_learnt = False
+        self._n_theta = 0  # rows at the last fit that learnt the kernel (0: never learnt)
         self._tiles: dict[tuple, _TileFit] = {}
         self._layout = TileLayout(mapping.tile_m)
         self._settled: set[tuple] = set()
@@ -188,7 +187,7 @@ class SurfaceModel:
         ms = self.mapping
         if not ms.optimize:
             return False
-        return not self._theta_learnt or len(ts) > ms.theta_refit_growth * self._n_theta
+        return self._n_theta == 0 or len(ts) > ms.theta_refit_growth * self._n_theta
 
     def warm_start(self, ts: TrainingSet) -> np.ndarray:
         """Step 3: each event's posterior from the last fit, its prior when new."""
@@ -269,7 +268,6 @@ class SurfaceModel:
             if learn:
                 est = self._estimator(True, warm).fit(X, y, s2, groups, start=st, directions=V)
                 self._theta = (est.lengthscale_, est.signal_var_)
-                self._theta_learnt = True
                 self._tiles = {}  # a new kernel: every tile refits and re-meshes
                 layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * self._theta[0]))
         tile_keys = {tuple(int(v) for v in k) for k in np.unique(layout.keys(ts.X[shape]), axis=0)}
