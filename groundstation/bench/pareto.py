@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from groundstation.bench import scenes3d
-from groundstation.mapping.metrics import chamfer_distance, sample_mesh_surface
+from groundstation.mapping.metrics import chamfer_distance, phantom_patches, sample_mesh_surface
 from groundstation.mapping.surface import SurfaceMesh
 
 DEFAULT = "default"
@@ -116,8 +116,6 @@ def _f(x: Any) -> float | None:
 
 def surface_metrics(mesh: SurfaceMesh | None, data: scenes3d.ObservationSet3D) -> dict:
     """Chamfer near the touched surface, missing, phantom (module docstring)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     out: dict[str, float | None] = dict.fromkeys(
@@ -137,20 +135,14 @@ def surface_metrics(mesh: SurfaceMesh | None, data: scenes3d.ObservationSet3D) -
     t_n = truth[touched.query(truth)[0] <= NEAR_M]
     v, f = mesh.vertices, mesh.faces
     area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
-    far = np.abs(data.sdf(v[f].mean(axis=1))) > PHANTOM_M
-    biggest = 0.0
-    if far.any():
-        ff, k = f[far], int(far.sum())
-        g = coo_matrix((np.ones(3 * k), (np.repeat(np.arange(k), 3), k + ff.reshape(-1))),
-                       shape=(k + len(v), k + len(v)))  # fmt: skip
-        _, lab = connected_components(g, directed=False)
-        biggest = float(np.bincount(lab[:k], weights=area[far]).max())
+    patches = phantom_patches(v, f, data.sdf, threshold=PHANTOM_M)
+    phantom = float(sum(p.area_m2 for p in patches))
     out.update(
         chamfer_near=_f(chamfer_distance(pts_n, t_n)) if len(pts_n) and len(t_n) else None,
         missing=float(np.mean(d > MISSING_M)),
-        phantom_share=float(area[far].sum() / max(area.sum(), 1e-12)),
-        phantom_m2=float(area[far].sum()),
-        phantom_max_patch_m2=biggest,
+        phantom_share=phantom / max(float(area.sum()), 1e-12),
+        phantom_m2=phantom,
+        phantom_max_patch_m2=patches[0].area_m2 if patches else 0.0,
         mesh_to_truth_median=float(np.median(m2t)),
         truth_to_mesh_median=float(np.median(d)),
     )

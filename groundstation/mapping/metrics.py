@@ -10,6 +10,8 @@
   the normal data within 0.5 m of o divided by u_o (smaller is clearer).
 * :func:`phantom_length` - length of extracted 2D zero contour farther than a threshold from the
   true boundary: the "phantom surface" that a zero prior mean leaves where data is sparse.
+* :func:`phantom_patches` - the 3D counterpart on a mesh: its faces farther than a threshold
+  from the true surface, joined into patches, each with its area and where it lies.
 
 The true surface is given either as a callable returning the (signed or unsigned) distance of
 (m, d) points, or as dense (k, d) samples of the surface.
@@ -280,3 +282,62 @@ def phantom_length(
     if mid.shape[0] == 0:
         return 0.0
     return float(length[distance_to(truth, mid) > threshold].sum())
+
+
+@dataclasses.dataclass(frozen=True)
+class PhantomPatch:
+    """One connected piece of invented surface (metres, m^2)."""
+
+    area_m2: float
+    centre: tuple[float, ...]  # area-weighted mean of its face centroids
+    lo: tuple[float, ...]  # bounding box of its face centroids
+    hi: tuple[float, ...]
+    farthest_m: float  # largest distance of a face centroid to the true surface
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def phantom_patches(
+    vertices: np.ndarray, faces: np.ndarray, truth: Truth, *, threshold: float = 0.15
+) -> tuple[PhantomPatch, ...]:
+    """Patches of mesh faces whose centroid lies farther than ``threshold`` from the true
+    surface (faces sharing a vertex belong to one patch), largest first."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if not threshold >= 0:
+        raise InputDataError(f"threshold must be >= 0 metres, got {threshold}")
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if f.shape[0] == 0:
+        return ()
+    cent = v[f].mean(axis=1)
+    dist = distance_to(truth, cent)
+    far = dist > threshold
+    if not far.any():
+        return ()
+    ff, c, dd = f[far], cent[far], dist[far]
+    area = 0.5 * np.linalg.norm(
+        np.cross(v[ff[:, 1]] - v[ff[:, 0]], v[ff[:, 2]] - v[ff[:, 0]]), axis=1
+    )
+    k = ff.shape[0]
+    rows = np.repeat(np.arange(k), 3)  # faces and vertices in one graph: face -- its vertices
+    g = coo_matrix((np.ones(rows.size), (rows, k + ff.reshape(-1))), shape=(k + len(v),) * 2)
+    _, labels = connected_components(g, directed=False)
+    labels = labels[:k]
+    out = []
+    for lab in np.unique(labels):
+        sel = labels == lab
+        a = area[sel]
+        w = a / a.sum() if a.sum() > 0 else np.full(a.size, 1.0 / a.size)
+        out.append(
+            PhantomPatch(
+                area_m2=float(a.sum()),
+                centre=tuple(float(x) for x in w @ c[sel]),
+                lo=tuple(float(x) for x in c[sel].min(axis=0)),
+                hi=tuple(float(x) for x in c[sel].max(axis=0)),
+                farthest_m=float(dd[sel].max()),
+            )
+        )
+    return tuple(sorted(out, key=lambda p: -p.area_m2))

@@ -28,6 +28,10 @@ Metrics (all distances in metres)
     by shared vertices: their total area and the largest patch's (surface the map invents).
     Here, in ``mesh_to_truth_median_m`` and in ``shape_error_m`` the true surface includes the
     floor (:func:`distance_to_world`): a drone pushed onto it has touched real surface.
+``phantom_patches``
+    The three largest of those patches, largest first, each with its area, centre, bounding
+    box and farthest distance to the truth (``mapping.metrics.PhantomPatch``): where the map
+    invents surface, to look at in the viewer.
 ``gust_events_flagged``, ``touch_events_flagged``
     Shares of detected events matched to truth gusts / touches that the map flags false.
 ``fp_precision``, ``fp_recall``
@@ -44,14 +48,16 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterable, Sequence
+from typing import Any
 
 import numpy as np
 
-from groundstation.mapping.metrics import chamfer_distance, sample_mesh_surface
+from groundstation.mapping.metrics import chamfer_distance, phantom_patches, sample_mesh_surface
 from groundstation.mapping.surface import SurfaceMesh
 
 MATCH_BEFORE_S = 0.1
 MATCH_AFTER_S = 0.3
+PHANTOM_LISTED = 3  # largest phantom patches listed by where they lie
 
 
 @dataclasses.dataclass(frozen=True)
@@ -163,11 +169,11 @@ def surface_scores(
     seed: int = 0,
     missing_m: float = 0.1,
     phantom_m: float = 0.15,
-) -> dict[str, float]:
-    """``chamfer_m``, ``chamfer_full_m`` and ``shape_error_m`` (module docstring); NaN when
+) -> dict[str, Any]:
+    """The surface metrics of the module docstring (floats, and ``phantom_patches``); NaN when
     there is no mesh, and then ``missing_share`` 1 (all the touched surface is missing) or NaN
     when nothing was touched (a contact-free flight has no surface to miss)."""
-    nan = {
+    nan: dict[str, Any] = {
         k: math.nan
         for k in (
             "chamfer_m", "chamfer_full_m", "shape_error_m", "mesh_to_truth_median_m",
@@ -176,6 +182,7 @@ def surface_scores(
     }  # fmt: skip
     nan["missing_share"] = 1.0 if len(touched_points(truth)) else math.nan
     nan["missing_share_near"] = nan["missing_share"]
+    nan["phantom_patches"] = []
     if mesh is None or mesh.is_empty:
         return nan
     scene = _scene(truth)
@@ -206,7 +213,9 @@ def surface_scores(
         missing_near = float(np.mean(d_b[near] > missing_m)) if near.any() else math.nan
     else:
         t2m, missing, missing_near = math.nan, math.nan, math.nan
-    phantom, biggest = phantom_patches(mesh, scene, phantom_m)
+    patches = phantom_patches(
+        mesh.vertices, mesh.faces, lambda p: distance_to_world(scene, p), threshold=phantom_m
+    )
     return {
         "chamfer_m": chamfer_distance(a, b),
         "chamfer_full_m": chamfer_distance(mesh_pts, true_pts),
@@ -215,34 +224,10 @@ def surface_scores(
         "truth_to_mesh_median_m": t2m,
         "missing_share": missing,
         "missing_share_near": missing_near,
-        "phantom_area_m2": phantom,
-        "phantom_max_patch_m2": biggest,
+        "phantom_area_m2": float(sum(p.area_m2 for p in patches)),
+        "phantom_max_patch_m2": patches[0].area_m2 if patches else 0.0,
+        "phantom_patches": [p.as_dict() for p in patches[:PHANTOM_LISTED]],
     }
-
-
-def phantom_patches(mesh: SurfaceMesh, scene, phantom_m: float) -> tuple[float, float]:
-    """Total area and largest patch area (m^2) of the faces whose centroid lies farther than
-    ``phantom_m`` from the true surface (patches: faces sharing a vertex)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    v, f = mesh.vertices, mesh.faces
-    cent = v[f].mean(axis=1)
-    far = distance_to_world(scene, cent) > phantom_m
-    if not far.any():
-        return 0.0, 0.0
-    ff = f[far]
-    area = 0.5 * np.linalg.norm(
-        np.cross(v[ff[:, 1]] - v[ff[:, 0]], v[ff[:, 2]] - v[ff[:, 0]]), axis=1
-    )
-    k = ff.shape[0]
-    # faces and vertices in one graph: face k -- its three vertices
-    rows = np.repeat(np.arange(k), 3)
-    cols = k + ff.reshape(-1)
-    g = coo_matrix((np.ones(rows.size), (rows, cols)), shape=(k + len(v), k + len(v)))
-    _, labels = connected_components(g, directed=False)
-    patch = np.bincount(labels[:k], weights=area)
-    return float(area.sum()), float(patch.max())
 
 
 def _true_area(scene) -> float:
@@ -264,7 +249,7 @@ def score(
     truth: dict | None,
     *,
     touched_radius_m: float = 0.5,
-) -> dict[str, float]:
+) -> dict[str, Any]:
     """Every truth-based metric, or {} when the log has no truth."""
     if not truth or not truth.get("scene"):
         return {}

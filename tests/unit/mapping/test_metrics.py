@@ -12,6 +12,7 @@ from groundstation.mapping.metrics import (
     distance_to,
     false_positive_clarity,
     phantom_length,
+    phantom_patches,
     polyline_length,
     sample_mesh_surface,
     sample_polylines,
@@ -119,3 +120,35 @@ def test_phantom_length_counts_only_far_contour():
         0.3, abs=2e-3
     )
     assert phantom_length([], true_circle) == 0.0
+
+
+def _square(x0, y0, z, side, n=5):
+    """An n x n vertex grid of a horizontal square (corner x0, y0; height z), as triangles."""
+    xx, yy = np.meshgrid(np.linspace(x0, x0 + side, n), np.linspace(y0, y0 + side, n))
+    v = np.column_stack([xx.ravel(), yy.ravel(), np.full(n * n, z)])
+    f = [
+        [i * n + j, i * n + j + 1, (i + 1) * n + j + 1] for i in range(n - 1) for j in range(n - 1)
+    ]
+    f += [
+        [i * n + j, (i + 1) * n + j + 1, (i + 1) * n + j]
+        for i in range(n - 1)
+        for j in range(n - 1)
+    ]
+    return v, np.asarray(f)
+
+
+def test_phantom_patches_are_separate_pieces_largest_first_with_where_they_lie():
+    floor = lambda p: p[:, 2]  # noqa: E731 - the true surface is the plane z = 0
+    on_it = _square(0.0, 0.0, 0.05, 1.0)  # within 0.15 m of the truth: not phantom
+    big = _square(3.0, 0.0, 0.5, 1.0)  # 1 m^2 floating 0.5 m up
+    small = _square(-2.0, -2.0, -0.3, 0.5)  # 0.25 m^2 sunk 0.3 m
+    v = np.vstack([on_it[0], big[0], small[0]])
+    f = np.vstack([on_it[1], big[1] + 25, small[1] + 50])
+    patches = phantom_patches(v, f, floor, threshold=0.15)
+    assert [round(p.area_m2, 6) for p in patches] == [1.0, 0.25]
+    assert patches[0].centre == pytest.approx((3.5, 0.5, 0.5), abs=0.05)
+    assert patches[0].farthest_m == pytest.approx(0.5)
+    assert patches[1].lo[2] == pytest.approx(-0.3) and patches[1].hi[0] <= -1.5
+    assert patches[0].as_dict()["area_m2"] == pytest.approx(1.0)
+    assert phantom_patches(*on_it, floor, threshold=0.15) == ()
+    assert phantom_patches(v, np.zeros((0, 3), dtype=int), floor) == ()

@@ -73,4 +73,6 @@ def test_a_mesh_on_the_floor_is_real_surface_and_one_below_it_is_phantom():
     assert surface_scores(square(0.02), truth)["phantom_max_patch_m2"] == 0.0
     below = surface_scores(square(-0.5), truth)
     assert below["phantom_max_patch_m2"] > 0.9
+    (where,) = below["phantom_patches"]  # one patch, listed with where it lies
+    assert abs(where["centre"][2] + 0.5) < 1e-9 and where["area_m2"] > 0.9
     assert below["mesh_to_truth_median_m"] > 0.4
