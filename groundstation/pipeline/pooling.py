@@ -211,6 +211,7 @@ def summarize(plan: Plan, records: Mapping[str, Mapping[str, Any]]) -> dict[str,
                 "folder": c.task.folder,
                 "status": r.get("status", "missing"),
                 **{k: rep.get(k) for k in (*TRUTH_METRICS, "contacts", "refits")},
+                "phantom_at": ((rep.get("phantom_patches") or [{}])[0]).get("centre"),
                 "task_wall_s": (r.get("done") or {}).get("task_wall_s"),
             }
     failed = [
@@ -276,14 +277,18 @@ def summary_markdown(summary: Mapping[str, Any], title: str = "groundstation bat
     cols = ("mesh_to_truth_median_m", "missing_share", "phantom_max_patch_m2",
             "gust_events_flagged", "touch_events_flagged", "chamfer_m")  # fmt: skip
     lines += ["", "## Per log", ""]
-    lines += ["| log | variant | status | " + " | ".join(cols) + " | contacts | task wall (s) |"]
-    lines += ["|---|---|---|" + "---|" * (len(cols) + 2)]
+    lines += ["| log | variant | status | " + " | ".join(cols)
+              + " | largest phantom patch at | contacts | task wall (s) |"]  # fmt: skip
+    lines += ["|---|---|---|" + "---|" * (len(cols) + 3)]
     for log, per in summary["logs"].items():
         for name, r in per.items():
+            at = r.get("phantom_at")
+            where = "(" + ", ".join(fmt(x, ".2f") for x in at) + ")" if at else "-"
             lines.append(
                 f"| {log} | {name} | {r['status']} | "
                 + " | ".join(fmt(r.get(k)) for k in cols)
-                + f" | {fmt(r.get('contacts'), '.0f')} | {fmt(r.get('task_wall_s'), '.1f')} |"
+                + f" | {where} | {fmt(r.get('contacts'), '.0f')}"
+                + f" | {fmt(r.get('task_wall_s'), '.1f')} |"
             )
     if summary.get("failed"):
         lines += ["", "## Failed or missing tasks", ""]

@@ -220,6 +220,34 @@ def map_scene(result, trajectory: np.ndarray):
     return vm.scene()
 
 
+def truth_rows(report: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """The report's truth scores as (label, text) summary rows (none without truth): the
+    accuracy next to what it costs (surface missing, surface invented, and where the largest
+    invented patches lie), and the flags per event."""
+    rows = []
+    for key, label in (
+        ("mesh_to_truth_median_m", "mesh -> truth, median (m)"),
+        ("chamfer_m", "Chamfer where touched (m)"),
+        ("missing_share", "touched surface missing (within 0.5 m of a touch)"),
+        ("missing_share_near", "touched surface missing (within 0.2 m)"),
+        ("phantom_area_m2", "phantom surface (m^2)"),
+        ("shape_error_m", "shape error (m)"),
+        ("gust_events_flagged", "gust events flagged"),
+        ("touch_events_flagged", "touch events flagged"),
+        ("fp_precision", "flag precision"),
+        ("fp_recall", "flag recall"),
+        ("detection_recall", "touches detected"),
+    ):
+        if key in report:
+            rows.append((label, _fmt(report[key])))
+    for k, p in enumerate(report.get("phantom_patches") or [], start=1):
+        centre = ", ".join(f"{x:.2f}" for x in p["centre"])
+        rows.append((f"phantom patch {k}",
+                     f"{_fmt(p['area_m2'])} m^2 at ({centre}), up to {_fmt(p['farthest_m'])} m "
+                     "from the truth"))  # fmt: skip
+    return rows
+
+
 def _fmt(v: Any, digits: int = 3) -> str:
     if v is None:
         return "–"
@@ -375,16 +403,7 @@ def write_report_html(
         ("observations", str(len(result.observations))),
         ("refits", f"{len(result.fits)} (median {_fmt(report.get('refit_s_median'))} s)"),
     ]
-    scores = (
-        ("chamfer_m", "Chamfer where touched (m)"),
-        ("shape_error_m", "shape error (m)"),
-        ("fp_precision", "flag precision"),
-        ("fp_recall", "flag recall"),
-        ("detection_recall", "touches detected"),
-    )
-    for key, label in scores:
-        if key in report:
-            summary.append((label, _fmt(report[key])))
+    summary += truth_rows(report)
     page = render_html(
         title=f"Flight report: {Path(result.log_path).name}",
         summary=summary,

@@ -152,6 +152,8 @@ def test_report_html_renders_offline_in_headless_chromium(replayed, tmp_path):
     assert "http://" not in html and "https://" not in html and "<script" not in html
     assert "trigger score" in html  # the default (impulse) detector's signal, named as such
     report = json.loads((d / "report.json").read_text())
+    assert "touched surface missing" in html  # the truth scores next to what they cost
+    assert ("phantom patch 1" in html) == bool(report["phantom_patches"])
     requests: list[str] = []
     with browser_page(1200, 900) as page:
         page.on("request", lambda req: requests.append(req.url))

@@ -148,6 +148,9 @@ def test_summary_lists_every_variant_log_and_failure():
     for i, t in enumerate(plan.tasks):
         records[t.folder] = _record(0.1 * (i + 1), 2, 1, 1) if i else {
             "status": "failed", "error": "InputDataError: truncated log\n"}  # fmt: skip
+    records[plan.tasks[1].folder]["report"]["phantom_patches"] = [
+        {"area_m2": 0.2, "centre": [1.0, -2.5, 0.75], "lo": [0.9, -2.6, 0.7],
+         "hi": [1.1, -2.4, 0.8], "farthest_m": 0.3}]  # fmt: skip
     s = summarize(plan, records)
     assert set(s["variants"]) == {"base", "low"} and set(s["logs"]) == {"a", "b"}
     assert s["variants"]["base"]["pooled"]["failed"] == 1
@@ -155,6 +158,7 @@ def test_summary_lists_every_variant_log_and_failure():
     text = summary_markdown(s)
     assert "| chamfer_m | low |" in text and "truncated log" in text
     assert "| a | base | failed |" in text
+    assert text.count("(1.00, -2.50, 0.75)") == 1  # where that log's largest phantom patch is
 
 
 def test_logs_sharing_a_name_stay_apart_in_the_summary():

@@ -1,0 +1,33 @@
+"""report.html's summary rows of the truth scores (pipeline/report.py, pure part)."""
+
+from __future__ import annotations
+
+import math
+
+from groundstation.pipeline.report import truth_rows
+
+
+def test_the_summary_shows_what_accuracy_costs_and_where_the_map_invents_surface():
+    report = {
+        "mesh_to_truth_median_m": 0.031,
+        "missing_share": 0.25,
+        "missing_share_near": math.nan,  # no touch near enough: shown as a dash
+        "phantom_area_m2": 0.4,
+        "touch_events_flagged": 0.0,
+        "phantom_patches": [
+            {
+                "area_m2": 0.3,
+                "centre": [4.2, -1.0, 0.8],
+                "lo": [4.0, -1.2, 0.7],
+                "hi": [4.4, -0.8, 0.9],
+                "farthest_m": 0.27,
+            },
+        ],  # fmt: skip
+    }
+    rows = dict(truth_rows(report))
+    assert rows["mesh -> truth, median (m)"] == "0.031"
+    assert rows["touched surface missing (within 0.5 m of a touch)"] == "0.25"
+    assert rows["touched surface missing (within 0.2 m)"] == "–"
+    assert rows["phantom patch 1"] == "0.3 m^2 at (4.20, -1.00, 0.80), up to 0.27 m from the truth"
+    assert "gust events flagged" not in rows  # not in the report (no gusts): not invented
+    assert truth_rows({"log": "x.mcap"}) == []  # no truth, no rows
