@@ -325,19 +325,25 @@ def phantom_patches(
     rows = np.repeat(np.arange(k), 3)  # faces and vertices in one graph: face -- its vertices
     g = coo_matrix((np.ones(rows.size), (rows, k + ff.reshape(-1))), shape=(k + len(v),) * 2)
     _, labels = connected_components(g, directed=False)
-    labels = labels[:k]
-    out = []
-    for lab in np.unique(labels):
-        sel = labels == lab
-        a = area[sel]
-        w = a / a.sum() if a.sum() > 0 else np.full(a.size, 1.0 / a.size)
-        out.append(
-            PhantomPatch(
-                area_m2=float(a.sum()),
-                centre=tuple(float(x) for x in w @ c[sel]),
-                lo=tuple(float(x) for x in c[sel].min(axis=0)),
-                hi=tuple(float(x) for x in c[sel].max(axis=0)),
-                farthest_m=float(dd[sel].max()),
-            )
+    order = np.argsort(labels[:k], kind="stable")  # faces grouped by patch, one pass each
+    lab = labels[:k][order]
+    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
+    a, c, dd = area[order], c[order], dd[order]
+    total = np.add.reduceat(a, starts)
+    count = np.add.reduceat(np.ones_like(a), starts)
+    weighted = np.add.reduceat(a[:, None] * c, starts, axis=0)
+    plain = np.add.reduceat(c, starts, axis=0) / count[:, None]  # a patch of zero area
+    centre = np.where(total[:, None] > 0, weighted / np.maximum(total, 1e-300)[:, None], plain)
+    lo, hi = np.minimum.reduceat(c, starts, axis=0), np.maximum.reduceat(c, starts, axis=0)
+    farthest = np.maximum.reduceat(dd, starts)
+    out = [
+        PhantomPatch(
+            area_m2=float(total[j]),
+            centre=tuple(float(x) for x in centre[j]),
+            lo=tuple(float(x) for x in lo[j]),
+            hi=tuple(float(x) for x in hi[j]),
+            farthest_m=float(farthest[j]),
         )
+        for j in range(starts.size)
+    ]
     return tuple(sorted(out, key=lambda p: -p.area_m2))

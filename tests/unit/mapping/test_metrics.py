@@ -151,4 +151,7 @@ def test_phantom_patches_are_separate_pieces_largest_first_with_where_they_lie()
     assert patches[1].lo[2] == pytest.approx(-0.3) and patches[1].hi[0] <= -1.5
     assert patches[0].as_dict()["area_m2"] == pytest.approx(1.0)
     assert phantom_patches(*on_it, floor, threshold=0.15) == ()
+    sliver = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [2.0, 0.0, 1.0]])  # no area, still there
+    (flat,) = phantom_patches(sliver, np.array([[0, 1, 2]]), floor)
+    assert flat.area_m2 == 0.0 and flat.centre == pytest.approx((1.0, 0.0, 1.0))
     assert phantom_patches(v, np.zeros((0, 3), dtype=int), floor) == ()
