@@ -14,7 +14,14 @@
   sparse the GP would otherwise draw a blob around each. Each event adds two rows at its contact
   centroid: the derivative of the potential along two tangents of n is 0, with noise
   ``tangent_slope_noise`` (label units per metre: 1 is a normal off by ~12 deg on a potential
-  rising 5 per metre), so the surface goes on flat for about a length scale.
+  rising 5 per metre), so the surface goes on flat for about a length scale. A *lone* event
+  (no other event's contact within ``plane_reach_m`` of its centroid) also adds four contact
+  rows (y = 0) at ``plane_reach_m`` along +-each tangent, with variance ``contact_noise^2 +
+  (plane_noise_per_m * plane_reach_m)^2``, in its own group: sparse touches on a face then
+  join up instead of leaving holes between them, and dense ones (which need no help) draw no
+  brims past edges. A plane point that another touch nearby places outside its own surface
+  (past an edge whose other face was touched), or that lies round a bend two touches show (a
+  pillar touched at two sides), is left out (``_plane_points``).
 - **Groups.** The rows of one contact event form a group (contacts without an event id are
   grouped into runs no more than ``event_gap_s`` apart in time). Its prior ``P(false)`` is the
   detector's ``p_false`` (mean over its rows) where known, else ``prior_false``.
@@ -51,6 +58,20 @@ import numpy as np
 
 from groundstation.contact.detector import Observation
 from groundstation.mapping.mixture import Groups
+
+#: A plane point another touch within this many plane reaches of it places outside that
+#: touch's surface is dropped (``_plane_points``) ...
+PLANE_GUARD_REACHES = 2.5
+#: ... by more than this along the other touch's normal, metres (the detector's placement
+#: error is a few centimetres).
+PLANE_BEYOND_TOL_M = 0.02
+#: ... or that lies ahead, behind this touch's tangent plane, with its normal turned towards
+#: the plane point by more than this sine (~17 deg, above the detector's normal error).
+PLANE_TURN_SIN = 0.3
+#: ... and sits where a circle through both touches would put it: behind / ahead (along the
+#: way the normal turns) within this factor of tan(turn / 2). The other face of a corner
+#: touched nearer to or farther from the edge than this touch is no bend: the plane holds.
+PLANE_BEND_RATIO = 1.25
 
 
 @dataclasses.dataclass(frozen=True)
@@ -242,6 +263,8 @@ def build_training_set(
         rows_g.append(-1)
         dirs.append(np.zeros(d))
     tangent_cells: set[tuple] = set()
+    lone = _lone([grp.contacts for grp in glist], p.plane_reach_m)
+    cen, nrm = _centres_normals(glist, d)
     if p.tangent_slope_noise > 0 and d == 3:
         for g, grp in enumerate(glist):
             if not grp.contacts:
@@ -267,11 +290,11 @@ def build_training_set(
                 rows_m.append(none)
                 rows_g.append(-1 if is_settled[g] else g)
                 dirs.append(v)
-            if p.plane_reach_m > 0:
+            if p.plane_reach_m > 0 and lone[g]:
                 rho = p.plane_reach_m
                 s2_plane = p.contact_noise**2 + (p.plane_noise_per_m * rho) ** 2
-                for v in (a, -a, b, -b):
-                    rows_X.append(centre + rho * v)
+                for q in _plane_points(g, centre, (a, -a, b, -b), cen, nrm, rho):
+                    rows_X.append(q)
                     rows_y.append(0.0)
                     rows_s2.append(s2_plane)
                     rows_m.append(none)
@@ -312,6 +335,82 @@ def build_training_set(
         settled=is_settled,
         n_raw=len(obs),
     )
+
+
+def _centres_normals(glist: list[_Group], d: int) -> tuple[np.ndarray, np.ndarray]:
+    """(G, d) contact centroid (NaN without contacts) and unit mean normal (0 where the
+    normals do not agree on one) of every group."""
+    cen = np.full((len(glist), d), np.nan)
+    nrm = np.zeros((len(glist), d))
+    for g, grp in enumerate(glist):
+        if grp.contacts:
+            cen[g] = np.mean(grp.contacts, axis=0)
+            n = np.mean(grp.normals, axis=0)
+            if float(np.linalg.norm(n)) >= 0.5:
+                nrm[g] = n / np.linalg.norm(n)
+    return cen, nrm
+
+
+def _plane_points(
+    g: int, centre: np.ndarray, tangents: Sequence[np.ndarray], cen: np.ndarray,
+    nrm: np.ndarray, reach: float,
+) -> list[np.ndarray]:  # fmt: skip
+    """Group ``g``'s plane points ``centre + reach * t``, leaving out the ones the touches
+    within ``PLANE_GUARD_REACHES * reach`` say the surface does not go on flat to:
+
+    - *past an edge*: another touch places the point outside its own surface (by more than
+      ``PLANE_BEYOND_TOL_M`` along its normal), the other face of a corner was touched;
+    - *round a bend*: another touch lies ahead along ``t``, behind this touch's tangent plane
+      (by more than ``PLANE_BEYOND_TOL_M``), with its normal turned towards ``t`` (by more
+      than ``PLANE_TURN_SIN``), where a circle through both touches would put it (within
+      ``PLANE_BEND_RATIO``): the surface curves away, as on a pillar touched at two sides.
+      A box touched on two faces equally far from their edge looks the same; there the
+      plane is left out too, and the GP's own smooth interpolation decides.
+    """
+    n_g = nrm[g]
+    others = (np.arange(len(cen)) != g) & np.isfinite(cen).all(axis=1) & nrm.any(axis=1)
+    out = []
+    for t in tangents:
+        q = centre + reach * t
+        near = others & (np.linalg.norm(np.nan_to_num(cen - q, nan=np.inf), axis=1)
+                         <= PLANE_GUARD_REACHES * reach)  # fmt: skip
+        off = cen[near] - centre
+        past_edge = np.einsum("ij,ij->i", q - cen[near], nrm[near]) > PLANE_BEYOND_TOL_M
+        behind = -(off @ n_g)  # h: how far behind the tangent plane
+        cos = np.clip(nrm[near] @ n_g, -1.0, 1.0)
+        turn = nrm[near] - np.outer(cos, n_g)  # the way the normal turns, in the plane
+        turn /= np.maximum(np.linalg.norm(turn, axis=1, keepdims=True), 1e-12)
+        ahead = np.einsum("ij,ij->i", off, turn)  # s: how far ahead that way
+        # on a circle through both touches h / s = tan(theta / 2), theta the normals' turn
+        half = np.tan(np.arccos(cos) / 2)
+        bend = (
+            (off @ t > 0)
+            & (behind > PLANE_BEYOND_TOL_M)
+            & (nrm[near] @ t > PLANE_TURN_SIN)
+            & (behind < PLANE_BEND_RATIO * half * ahead)
+            & (behind * PLANE_BEND_RATIO > half * ahead)
+        )
+        if not np.any(past_edge | bend):
+            out.append(q)
+    return out
+
+
+def _lone(contacts: list[list[np.ndarray]], radius: float) -> np.ndarray:
+    """(G,) bool: no other group's contact lies within ``radius`` of the group's contact
+    centroid (groups without contacts count as lone; ``radius`` <= 0: every group)."""
+    lone = np.ones(len(contacts), dtype=bool)
+    pts = [x for cs in contacts for x in cs]
+    if radius <= 0 or not pts:
+        return lone
+    from scipy.spatial import cKDTree
+
+    owner = np.repeat(np.arange(len(contacts)), [len(cs) for cs in contacts])
+    has = np.flatnonzero([len(cs) > 0 for cs in contacts])
+    centres = np.array([np.mean(contacts[g], axis=0) for g in has])
+    nears = cKDTree(np.asarray(pts)).query_ball_point(centres, radius)
+    for g, near in zip(has, nears, strict=True):
+        lone[g] = not np.any(owner[np.asarray(near, dtype=np.int64)] != g)
+    return lone
 
 
 def _face(n: np.ndarray) -> int:

@@ -3,6 +3,7 @@ must make on planted cases."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -244,3 +245,57 @@ def test_settled_events_are_pooled_with_their_summed_precision():
             np.concatenate([plain.row_members[k] for k in np.flatnonzero(old)]).tolist()
         )
     assert [g.tolist() for g in ts.group_ids] == [g.tolist() for g in plain.group_ids]
+
+
+def test_a_lone_touch_goes_on_as_plane_points_and_a_crowded_one_does_not():
+    """A touch with no other event's contact within ``plane_reach_m`` adds four contact rows
+    that far along its tangents (in its own group, so its fate is theirs); two touches closer
+    than that speak for the surface between them and add none; and no plane point is added
+    where another touch's face says there is no surface, or round a bend two touches show."""
+    policy = TrainingPolicy(tangent_slope_noise=1.0, plane_reach_m=0.2, plane_noise_per_m=0.5)
+    n = np.array([-1.0, 0.0, 0.0])
+
+    def touch(i, t, y, event, x=0.0, normal=n):
+        at = np.array([x, y, 1.0])
+        return [
+            Observation(2 * i, int(t * 1e9), at, 0.0, normal, event, 0.0, sigma_m=0.01),
+            Observation(2 * i + 1, int(t * 1e9), at - 0.1 * normal, -1.0, normal, event, 0.0,
+                        sigma_m=0.01),
+        ]  # fmt: skip
+
+    def planes(ts):
+        value = np.einsum("ij,ij->i", ts.directions, ts.directions) == 0.0
+        return value & (ts.y == 0.0) & np.array([len(m) == 0 for m in ts.row_members])
+
+    lone = build_training_set(touch(0, 0.0, 0.0, 0) + touch(1, 5.0, 1.0, 1), policy)
+    p = planes(lone)
+    assert p.sum() == 8  # four per touch
+    assert set(lone.groups.row_group[p].tolist()) == {0, 1}
+    np.testing.assert_allclose(lone.X[p][:, 0], 0.0)  # in the touched plane x = 0 ...
+    d = np.linalg.norm(lone.X[p] - np.array([0.0, 0.0, 1.0]), axis=1)
+    np.testing.assert_allclose(np.sort(d)[:4], 0.2)  # ... 0.2 m from their touch
+    np.testing.assert_allclose(lone.noise_var[p], policy.contact_noise**2 + (0.5 * 0.2) ** 2)
+    crowded = build_training_set(touch(0, 0.0, 0.0, 0) + touch(1, 5.0, 0.15, 1), policy)
+    assert planes(crowded).sum() == 0
+    off = build_training_set(touch(0, 0.0, 0.0, 0), dataclasses.replace(policy, plane_reach_m=0.0))
+    assert planes(off).sum() == 0
+    # a box corner: touch 0 on the face x = 0, 0.1 m from the edge y = 0, whose other face
+    # touch 1 touched; touch 0's plane stops at that face (its point at y = -0.1 lies outside
+    # it), touch 1's keeps all four (its point nearest the corner, x = 0.1, is still inside)
+    side = np.array([0.0, -1.0, 0.0])
+    corner = build_training_set(touch(0, 0.0, 0.1, 0) + touch(1, 5.0, 0.0, 1, 0.3, side), policy)
+    p = planes(corner)
+    rg = corner.groups.row_group[p]
+    assert (rg == 0).sum() == 3 and (rg == 1).sum() == 4
+    assert corner.X[p][rg == 0][:, 1].min() == pytest.approx(0.1)  # nothing past y = 0
+    # a pillar of radius 0.3 m round the z axis touched at two sides 90 deg apart: each
+    # touch's plane stops short of the way the surface bends towards the other (that point
+    # would lie 7.6 cm off the pillar) and goes on along the axis and away from it
+    pillar = build_training_set(
+        touch(0, 0.0, 0.0, 0, -0.3) + touch(1, 5.0, -0.3, 1, 0.0, side), policy
+    )
+    p = planes(pillar)
+    rg = pillar.groups.row_group[p]
+    assert (rg == 0).sum() == 3 and (rg == 1).sum() == 3
+    assert pillar.X[p][rg == 0][:, 1].min() == pytest.approx(0.0)  # none at y = -0.2 ...
+    assert pillar.X[p][rg == 1][:, 0].min() == pytest.approx(0.0)  # ... nor at x = -0.2
