@@ -63,6 +63,7 @@ LEGACY_SETTINGS = (
     "mapping.engine=legacy",
     "mapping.lengthscale_min=0.35",
     "mapping.prior_mean=0.0",
+    "surface.max_std_fraction=0.7",
 )
 
 

@@ -113,6 +113,28 @@ class MappingSettings:
         0.070 m, largest phantom patch 0.22 / 0.21 / 0.20 / 0.19 m², mesh->truth 0.037 /
         0.035 / 0.034 / 0.034 m; paper-like set seeds 1-4, Chamfer 24.8 / 25.5 / 26.4 / 28.1 mm.
         Tighter tangents draw planes farther past the edges MuJoCo's normals tilt.
+    plane_reach_m : float
+        A *lone* touch (no other event's contact within this of its own) also adds four
+        contact rows this far from it along its two tangents (mixture, 3D; 0: none): the face
+        goes on past the ~0.3 m a length scale alone carries it. Without them almost none of
+        the true surface 0.3-0.5 m from the nearest trusted touch was meshed, 100 % of it
+        beyond 0.4 m. Where other touches are that near, they speak for the surface between
+        them, and plane points there only draw brims past edges: on the paper-like set
+        (900 dense contacts) planes at every contact cost 6 mm of Chamfer, planes at lone ones
+        none. A plane point past another touch's face or round a bend two touches show is
+        left out (``training._plane_points``). The rows belong to the touch's event, so its
+        fate is theirs and free space through them is evidence against it. Tuning flights
+        (seed 200, 27 flights, flight means; gusts and touches pooled), 0 with mask 0.7 ->
+        0.2 with mask 0.6 (``surface.max_std_fraction``): missing within 0.5 m 0.302 ->
+        0.245, within 0.2 m 0.043 -> 0.032, largest phantom patch 0.145 -> 0.122 m²,
+        Chamfer 0.063 -> 0.054 m, mesh->truth 0.028 -> 0.023 m, touches flagged 14 -> 12 of
+        568, gusts 114 of 117 both. Without the bend rule the simple-physics pillars' mesh->
+        truth went 0.01 -> 0.03 m (drawn as boxes); with it they stay at 0.01 m. Planes at
+        0.25 m drew more phantom (0.284 against 0.197 m² at 0.2 m, mask 0.7, no guards).
+    plane_noise_per_m : float
+        Standard deviation of a plane point's value per metre of reach (label units / m), on
+        top of ``contact_noise``: at 0.2 m, 0.5 gives 0.11, a hint that a dense touch set
+        overrides.
     model : "robust" | "gpis"
         Student-t robust GPIS (the paper's method) or homoscedastic GPIS.
     lengthscale : float
@@ -272,7 +294,7 @@ class MappingSettings:
     settle_after_s: float = 60.0
     settle_evidence_nats: float = 0.7
     settled_voxel_m: float = 0.1
-    plane_reach_m: float = 0.0
+    plane_reach_m: float = 0.2
     plane_noise_per_m: float = 0.5
     model: Literal["robust", "gpis"] = "robust"
     lengthscale: float = 0.25
@@ -433,10 +455,15 @@ class SurfaceSettings:
     max_std_fraction : float
         Keep only mesh faces whose vertices' predictive std is at most this fraction of the
         prior std sigma_f (``surface.confident_part``); 1 keeps everything. Far from the
-        observations the mean relaxes to the prior mean 0 and the zero set is noise. On the
-        11 sessions of ``bench sessions`` 0.7 cut the whole-mesh Chamfer from 0.44 to 0.37 m
-        with the touched-region Chamfer unchanged (0.093 m); 0.5 cut more (0.34 m) but lost
-        touched surface (worst session 0.18 m against 0.15 m).
+        observations the mean relaxes to the prior mean and its zero set says nothing. The
+        one knob between surface missing and phantom surface: on the tuning flights (seed
+        200, flight means) without plane points, 0.6 / 0.7 / 0.85 / 1.0 gave missing within
+        0.5 m 0.357 / 0.302 / 0.221 / 0.186 and largest phantom patch 0.102 / 0.145 / 0.227
+        / 0.407 m². With ``mapping.plane_reach_m`` 0.2, 0.6 gives 0.245 and 0.122 m², both
+        better than 0.7 without planes (see there). A mask on the zero set's position std
+        (std / |gradient|) instead was tried at 0.10 / 0.15 / 0.20 m: 0.360 / 0.280 / 0.235
+        missing against 0.116 / 0.198 / 0.233 m², a worse trade than this one. The legacy
+        engine was measured at 0.7 (``bench pareto``'s legacy settings pin it).
     """
 
     region_min: tuple[float, ...] = ()
@@ -447,7 +474,7 @@ class SurfaceSettings:
     coarse_factor: int = 4
     band_voxels: float = 2.0
     region_margin: float = 0.5
-    max_std_fraction: float = 0.7
+    max_std_fraction: float = 0.6
 
     def __post_init__(self) -> None:
         if len(self.region_min) != len(self.region_max) or len(self.region_min) not in (0, 2, 3):
