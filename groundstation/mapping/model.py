@@ -99,6 +99,7 @@ def training_policy(
         tangent_slope_noise=mapping.tangent_slope_noise,
         plane_reach_m=mapping.plane_reach_m,
         plane_noise_per_m=mapping.plane_noise_per_m,
+        plane_max_p_false=mapping.plane_max_p_false,
         settled_voxel_m=mapping.settled_voxel_m,
     )
 

@@ -19,9 +19,11 @@
   rows (y = 0) at ``plane_reach_m`` along +-each tangent, with variance ``contact_noise^2 +
   (plane_noise_per_m * plane_reach_m)^2``, in its own group: sparse touches on a face then
   join up instead of leaving holes between them, and dense ones (which need no help) draw no
-  brims past edges. A plane point that another touch nearby places outside its own surface
-  (past an edge whose other face was touched), or that lies round a bend two touches show (a
-  pillar touched at two sides), is left out (``_plane_points``).
+  brims past edges. Only a touch whose prior ``P(false)`` is at most ``plane_max_p_false``
+  gets them: the surface is carried on from touches the detector believes, not from a
+  coin-flip event amid free space. A plane point that another touch nearby places outside its
+  own surface (past an edge whose other face was touched), or that lies round a bend two
+  touches show (a pillar touched at two sides), is left out (``_plane_points``).
 - **Groups.** The rows of one contact event form a group (contacts without an event id are
   grouped into runs no more than ``event_gap_s`` apart in time). Its prior ``P(false)`` is the
   detector's ``p_false`` (mean over its rows) where known, else ``prior_false``.
@@ -98,6 +100,7 @@ class TrainingPolicy:
     tangent_slope_noise: float = 0.0
     plane_reach_m: float = 0.0
     plane_noise_per_m: float = 0.5
+    plane_max_p_false: float = 1.0
     settled_voxel_m: float = 0.1
 
 
@@ -290,7 +293,8 @@ def build_training_set(
                 rows_m.append(none)
                 rows_g.append(-1 if is_settled[g] else g)
                 dirs.append(v)
-            if p.plane_reach_m > 0 and lone[g]:
+            prior_g = float(np.mean(grp.priors)) if grp.priors else p.prior_false
+            if p.plane_reach_m > 0 and lone[g] and prior_g <= p.plane_max_p_false:
                 rho = p.plane_reach_m
                 s2_plane = p.contact_noise**2 + (p.plane_noise_per_m * rho) ** 2
                 for q in _plane_points(g, centre, (a, -a, b, -b), cen, nrm, rho):

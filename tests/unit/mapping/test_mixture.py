@@ -251,7 +251,8 @@ def test_a_lone_touch_goes_on_as_plane_points_and_a_crowded_one_does_not():
     """A touch with no other event's contact within ``plane_reach_m`` adds four contact rows
     that far along its tangents (in its own group, so its fate is theirs); two touches closer
     than that speak for the surface between them and add none; and no plane point is added
-    where another touch's face says there is no surface, or round a bend two touches show."""
+    where another touch's face says there is no surface, or round a bend two touches show, or
+    for a touch the detector doubts."""
     policy = TrainingPolicy(tangent_slope_noise=1.0, plane_reach_m=0.2, plane_noise_per_m=0.5)
     n = np.array([-1.0, 0.0, 0.0])
 
@@ -279,6 +280,11 @@ def test_a_lone_touch_goes_on_as_plane_points_and_a_crowded_one_does_not():
     assert planes(crowded).sum() == 0
     off = build_training_set(touch(0, 0.0, 0.0, 0), dataclasses.replace(policy, plane_reach_m=0.0))
     assert planes(off).sum() == 0
+    # a touch the detector doubts (p_false above plane_max_p_false) carries no surface on
+    doubted = [dataclasses.replace(o, p_false=0.5) for o in touch(0, 0.0, 0.0, 0)]
+    gated = dataclasses.replace(policy, plane_max_p_false=0.3)
+    assert planes(build_training_set(doubted, gated)).sum() == 0
+    assert planes(build_training_set(touch(0, 0.0, 0.0, 0), gated)).sum() == 4  # prior 0.1
     # a box corner: touch 0 on the face x = 0, 0.1 m from the edge y = 0, whose other face
     # touch 1 touched; touch 0's plane stops at that face (its point at y = -0.1 lies outside
     # it), touch 1's keeps all four (its point nearest the corner, x = 0.1, is still inside)
