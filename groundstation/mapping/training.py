@@ -266,20 +266,17 @@ def build_training_set(
         rows_g.append(-1)
         dirs.append(np.zeros(d))
     tangent_cells: set[tuple] = set()
-    lone = _lone([grp.contacts for grp in glist], p.plane_reach_m)
-    cen, nrm = _centres_normals(glist, d)
     if p.tangent_slope_noise > 0 and d == 3:
+        lone = _lone([grp.contacts for grp in glist], p.plane_reach_m)
+        cen, nrm = _centres_normals(glist, d)
         for g, grp in enumerate(glist):
-            if not grp.contacts:
+            n = nrm[g]  # zero without contacts or where their normals disagree
+            if not n.any():
                 continue
-            n = np.mean(grp.normals, axis=0)
-            if float(np.linalg.norm(n)) < 0.5:
-                continue
-            n = n / np.linalg.norm(n)
             a = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
             a /= np.linalg.norm(a)
             b = np.cross(n, a)
-            centre = np.mean(grp.contacts, axis=0)
+            centre = cen[g]
             if is_settled[g]:  # settled: one event's tangents per voxel (rows bounded by area)
                 cell = tuple(np.floor(centre / p.settled_voxel_m).astype(np.int64).tolist())
                 if cell in tangent_cells:
