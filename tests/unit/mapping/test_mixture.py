@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from groundstation.contact.detector import Observation
-from groundstation.mapping.kernels import se_kernel
+from groundstation.mapping.kernels import se_kernel, se_mixed
 from groundstation.mapping.mixture import EventMixtureGPIS, Groups, KernelBounds
 from groundstation.mapping.training import TrainingPolicy, build_training_set
 
@@ -63,6 +63,36 @@ def test_with_every_event_trusted_it_is_the_plain_gp():
     m, s = est.predict(Xq, return_std=True)
     assert np.allclose(m, mean, atol=1e-8)
     assert np.allclose(s, np.sqrt(np.maximum(np.diag(cov), 0)), atol=1e-7)
+
+
+def test_prediction_with_tangent_rows_is_the_dense_gp_over_values_and_slopes():
+    """Oracle for ``MixedPosterior.predict`` (its own kernel expansion, value columns first):
+    the textbook GP on the joint value/derivative covariance of ``kernels.se_mixed``."""
+    X, y, g = toy()
+    s2 = np.where(g < 0, 0.09, 0.0025)
+    wall = np.flatnonzero(y == 0.0)[:6]  # slope rows interleaved with the value rows
+    V = np.zeros_like(X)
+    Xa = np.vstack([X, X[wall], X[wall]])
+    Va = np.vstack([V, np.tile([0.0, 1.0, 0.0], (6, 1)), np.tile([0.0, 0.0, 1.0], (6, 1))])
+    ya = np.concatenate([y, np.zeros(12)])
+    s2a = np.concatenate([s2, np.full(12, 0.04)])
+    ga = np.concatenate([g, g[wall], g[wall]])
+    perm = np.random.default_rng(3).permutation(len(ya))
+    Xa, Va, ya, s2a, ga = Xa[perm], Va[perm], ya[perm], s2a[perm], ga[perm]
+    est = EventMixtureGPIS(
+        lengthscale=0.3, signal_var=0.6, bounds=BOUNDS, learn_kernel=False, prior_mean=0.4
+    )
+    est.fit(Xa, ya, s2a, groups(ga, 1e-6), directions=Va)
+    Xq = np.random.default_rng(1).uniform(-0.2, 1.0, (40, 3))
+    Vq = np.zeros_like(Xq)
+    C = se_mixed(Xa, Va, Xa, Va, 0.3, 0.6) + np.diag(s2a)
+    Kq = se_mixed(Xq, Vq, Xa, Va, 0.3, 0.6)
+    mu0 = np.where(np.einsum("ij,ij->i", Va, Va) > 0, 0.0, 0.4)  # a slope's prior mean is 0
+    mean = 0.4 + Kq @ np.linalg.solve(C, ya - mu0)
+    var = 0.6 - np.einsum("ij,ji->i", Kq, np.linalg.solve(C, Kq.T))
+    m, s = est.predict(Xq, return_std=True)
+    assert np.allclose(m, mean, atol=1e-8)
+    assert np.allclose(s, np.sqrt(np.maximum(var, 0)), atol=1e-7)
 
 
 def test_leave_burst_out_residuals_equal_an_explicit_refit_without_the_burst():
