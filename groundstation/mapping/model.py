@@ -503,12 +503,14 @@ class SurfaceModel:
         return max(ss.spacing, self.lengthscale_ / ss.voxels_per_lengthscale)
 
     def reach_m(self) -> float:
-        """How far from a trusted contact the surface may be drawn: a tangent plane's reach
-        plus 2.5 length scales (beyond, the field is the prior and its zero set is noise)."""
-        return self.mapping.plane_reach_m + 2.5 * self.lengthscale_
+        """How far from an anchor (:meth:`anchors`) the surface may be drawn: 2.5 length scales
+        (beyond, the field is the prior and its zero set is noise). A lone touch's plane points
+        are anchors themselves, so the reach carries on from them and is not widened again."""
+        return 2.5 * self.lengthscale_
 
     def anchors(self, rows: np.ndarray | None = None) -> np.ndarray:
-        """(k, d) contact and internal rows of the events decided true: where surface can be."""
+        """(k, d) contact, internal and plane-point rows of the events decided true: where
+        surface can be."""
         ts = self.training_set_
         g = ts.groups.row_group
         trusted = np.ones(len(ts), dtype=bool)  # free space (y > 0) is dropped below
