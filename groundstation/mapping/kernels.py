@@ -146,18 +146,22 @@ def se_mixed(
     d2 = np.einsum("ij,ij->i", V2, V2) > 0.0
     if not d1.any() and not d2.any():
         return K
+    # The factor differs from 1 only in the rows and columns of derivatives (a few per
+    # cent of them): scale those blocks in place, never a temporary of K's size per case.
     l2 = lengthscale * lengthscale
-    dot_v2 = X1 @ V2.T - np.einsum("ij,ij->i", X2, V2)[None, :]  # (x_i - x'_j) . v_j
-    dot_u1 = np.einsum("ij,ij->i", X1, V1)[:, None] - V1 @ X2.T  # (x_i - x'_j) . u_i
-    uv = V1 @ V2.T
-    vv = (~d1)[:, None] & (~d2)[None, :]
-    vd = (~d1)[:, None] & d2[None, :]
-    dv = d1[:, None] & (~d2)[None, :]
-    dd = d1[:, None] & d2[None, :]
-    factor = (
-        vv.astype(np.float64)
-        + np.where(vd, dot_v2 / l2, 0.0)
-        - np.where(dv, dot_u1 / l2, 0.0)
-        + np.where(dd, uv / l2 - dot_u1 * dot_v2 / (l2 * l2), 0.0)
-    )
-    return K * factor
+    r1, c2 = np.flatnonzero(d1), np.flatnonzero(d2)
+    if c2.size:
+        Xc, Vc = X2[c2], V2[c2]
+        dot_v2 = X1 @ Vc.T - np.einsum("ij,ij->i", Xc, Vc)[None, :]  # (x_i - x'_j) . v_j
+        block = dot_v2 / l2
+        if r1.size:
+            U = V1[r1]
+            dot_u1 = np.einsum("ij,ij->i", X1[r1], U)[:, None] - U @ Xc.T  # (x_i - x'_j) . u_i
+            block[r1] = (U @ Vc.T) / l2 - dot_u1 * dot_v2[r1] / (l2 * l2)
+        K[:, c2] *= block
+    if r1.size:
+        v2 = np.flatnonzero(~d2)
+        U = V1[r1]
+        dot_u1 = np.einsum("ij,ij->i", X1[r1], U)[:, None] - U @ X2[v2].T
+        K[np.ix_(r1, v2)] *= -dot_u1 / l2
+    return K

@@ -353,7 +353,8 @@ class EventMixtureGPIS:
             raise InputDataError("fit: directions must have the shape of X")
         is_val = np.einsum("ij,ij->i", V, V) == 0.0
         center = X.mean(axis=0)
-        D = sq_dists(X[is_val], X[is_val], center=center)
+        # squared distances only for the kernel step (a tile refit with a fixed kernel skips it)
+        D = sq_dists(X[is_val], X[is_val], center=center) if self.learn_kernel else None
         rg = groups.row_group
         in_group = rg >= 0
         bursts = self._burst_rows(groups)
