@@ -47,6 +47,12 @@ from groundstation.mapping.tiles import TileLayout, signature
 from groundstation.mapping.training import TrainingPolicy, TrainingSet, build_training_set
 
 _DEFAULT_MAPPING = MappingSettings()
+#: The surface is drawn up to this many length scales from an anchor (:meth:`SurfaceModel.reach_m`).
+REACH_LENGTHSCALES = 2.5
+#: The kernel's learning tile holds at least this halo, metres: at l = 0.1 m a halo of 3 l
+#: left too little surface there to learn it from (the bundled wall survey's final map became
+#: worse than its live one, 853585c).
+LEARN_HALO_MIN_M = 0.75
 _DEFAULT_SURFACE = SurfaceSettings()
 
 
@@ -167,7 +173,7 @@ class SurfaceModel:
         self._theta: tuple[float, float] | None = None
         self._n_theta = 0  # rows at the last fit that learnt the kernel (0: never learnt)
         self._tiles: dict[tuple, _TileFit] = {}
-        self._layout = TileLayout(mapping.tile_m)
+        self._layout = TileLayout(mapping.tile_m, 0.0)
         self._settled: set[tuple] = set()
 
     # ------------------------------------------------------------------ policy steps
@@ -251,11 +257,11 @@ class SurfaceModel:
         if self._theta is None:
             ms = self.mapping
             self._theta = self.bounds.clip(max(ms.lengthscale, ms.lengthscale_min), ms.signal_var)
-        layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * self._theta[0]))
         shape = ts.y <= 0.0  # contact, internal and tangent rows (pooled or in a group)
         if learn:  # theta is shared by every tile: learnt where the most surface is
-            key = self._learning_tile(ts, start, layout)
-            rows = layout.members(ts.X, key)
+            region = self._learning_layout()
+            key = self._learning_tile(ts, start, region)
+            rows = region.members(ts.X, key)
             X, y, s2, V, groups, st, _ = self._subset(ts, rows, start)
             # the kernel step weighs each row by its event's decision: decide the events that
             # are new since the last fit with the current kernel first, so that a gust still
@@ -270,12 +276,16 @@ class SurfaceModel:
                 est = self._estimator(True, warm).fit(X, y, s2, groups, start=st, directions=V)
                 self._theta = (est.lengthscale_, est.signal_var_)
                 self._tiles = {}  # a new kernel: every tile refits and re-meshes
-                layout = TileLayout(self.mapping.tile_m, max(0.75, 3.0 * self._theta[0]))
-        tile_keys = {tuple(int(v) for v in k) for k in np.unique(layout.keys(ts.X[shape]), axis=0)}
+        layout = self._fitting_layout()
+        # every tile the surface can reach, also one with no shape row in its own core
+        near = layout.keys_near(ts.X[shape], REACH_LENGTHSCALES * self._theta[0])
+        tile_keys = {tuple(int(v) for v in k) for k in near}
         decided = start > 0.5
         fitted: dict[tuple, _TileFit] = {}
         for key in sorted(tile_keys):
             rows = layout.members(ts.X, key)
+            if rows.size < 2 or not shape[rows].any():
+                continue  # no surface can be drawn in this core from its rows
             X, y, s2, V, groups, st, gidx = self._subset(ts, rows, start)
             sig = signature(X, y, s2, V, groups.row_group, np.round(groups.prior_false, 4),
                             groups.burst, groups.extra_llr, decided[gidx])  # fmt: skip
@@ -296,6 +306,21 @@ class SurfaceModel:
             if tile is not None:
                 post[g] = tile.est.posterior_false_[tile.local[g]]
         return post, learn
+
+    def _fitting_layout(self) -> TileLayout:
+        """Tiles of ``tile_m`` or three length scales, whichever is longer, each with a halo of
+        three length scales: a tile's model then answers for its core as a model of everything
+        would (the SE kernel's correlation at 3 l is 1 %), on the fewest rows. With surface
+        data the rows of a tile grow with the square of (edge + 2 halo) and the tiles a change
+        touches with its cube over the edge, so refits cost least near edge = halo."""
+        ell = self._theta[0]
+        return TileLayout(max(self.mapping.tile_m, 3.0 * ell), 3.0 * ell)
+
+    def _learning_layout(self) -> TileLayout:
+        """The region the kernel is learnt on: ``learn_tile_m`` cubes with a halo of three length
+        scales but at least ``LEARN_HALO_MIN_M`` (enough surface to identify it)."""
+        ell = self._theta[0]
+        return TileLayout(self.mapping.learn_tile_m, max(LEARN_HALO_MIN_M, 3.0 * ell))
 
     def _identified(self, p_false: np.ndarray) -> bool:
         """Whether events with these P(false) identify the kernel (``learn_min_events``)."""
@@ -506,7 +531,7 @@ class SurfaceModel:
         """How far from an anchor (:meth:`anchors`) the surface may be drawn: 2.5 length scales
         (beyond, the field is the prior and its zero set is noise). A lone touch's plane points
         are anchors themselves, so the reach carries on from them and is not widened again."""
-        return 2.5 * self.lengthscale_
+        return REACH_LENGTHSCALES * self.lengthscale_
 
     def anchors(self, rows: np.ndarray | None = None) -> np.ndarray:
         """(k, d) contact, internal and plane-point rows of the events decided true: where

@@ -99,9 +99,11 @@ class MappingSettings:
     settled_voxel_m : float
         Voxel edge of the settled pool, metres.
     tile_m : float
-        Edge of the cubic tiles the map is fitted in (mixture; ``mapping/tiles.py``): each is
-        fitted on its rows plus a halo of three length scales, and only tiles whose data changed
-        are refitted.
+        Smallest edge of the cubic tiles the map is fitted in (mixture; ``mapping/tiles.py``):
+        the edge is three length scales when that is longer; each tile is fitted on its rows plus
+        a halo of three length scales, and only tiles whose data changed are refitted.
+    learn_tile_m : float
+        Edge of the tile the kernel is learnt on (the one holding the most trusted surface).
     tangent_slope_noise : float
         Noise (label units per metre) of each event's two tangent-plane rows: the potential's
         derivative along the contact's tangents is 0, so a surface goes on flat around a touch
@@ -298,7 +300,8 @@ class MappingSettings:
     mixture_max_iter: int = 12
     learn_min_events: int = 3
     tangent_slope_noise: float = 1.0
-    tile_m: float = 2.0
+    tile_m: float = 1.0
+    learn_tile_m: float = 2.0
     settle_p_false: float = 0.05
     settle_after_s: float = 60.0
     settle_evidence_nats: float = 0.7
@@ -368,6 +371,8 @@ class MappingSettings:
             "burst_radius_m",
             "flag_tol",
             "settled_voxel_m",
+            "tile_m",
+            "learn_tile_m",
         ):
             value = getattr(self, name)
             if not value > 0:

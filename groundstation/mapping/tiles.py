@@ -17,6 +17,7 @@ import dataclasses
 import hashlib
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 
 @dataclasses.dataclass(frozen=True)
@@ -29,6 +30,25 @@ class TileLayout:
     def keys(self, X: np.ndarray) -> np.ndarray:
         """(n, d) int64 tile index of each point (its core tile)."""
         return np.floor(np.asarray(X, dtype=np.float64) / self.edge_m).astype(np.int64)
+
+    def keys_near(self, X: np.ndarray, reach_m: float) -> np.ndarray:
+        """(k, d) int64 keys of the tiles whose core comes within ``reach_m`` of a point (by
+        box: a superset of the ball), sorted: a tile with no point of its own in its core can
+        still hold surface drawn from its neighbours' points."""
+        X = np.asarray(X, dtype=np.float64)
+        d = X.shape[1]
+        if X.shape[0] == 0:
+            return np.zeros((0, d), dtype=np.int64)
+        lo = np.unique(np.floor((X - reach_m) / self.edge_m).astype(np.int64), axis=0)
+        span = int(np.ceil(2.0 * reach_m / self.edge_m)) + 1
+        offsets = np.stack(np.meshgrid(*[np.arange(span)] * d, indexing="ij"), -1).reshape(-1, d)
+        cand = np.unique((lo[:, None, :] + offsets[None]).reshape(-1, d), axis=0)
+        # a point's box [x - r, x + r] meets a core when the point lies within (edge / 2 + r)
+        # of the core's centre in the max norm
+        centre = (cand + 0.5) * self.edge_m
+        bound = 0.5 * self.edge_m + reach_m + 1e-9
+        _, idx = cKDTree(X).query(centre, p=np.inf, distance_upper_bound=bound)
+        return cand[idx < X.shape[0]]
 
     def core(self, key: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper corners of a tile's core, metres."""

@@ -287,3 +287,30 @@ def test_a_lone_touch_nothing_contradicts_stays_trusted_and_one_flown_through_is
     through.fit(lone_touch_flight(back_through=True), learn_kernel=True)
     assert through.training_set_.swept[0]  # the body later passed through it: that is evidence
     assert through.event_posteriors()[7] > 0.5
+
+
+def test_tiles_mesh_the_surface_their_neighbours_data_reach():
+    # touches up to y = 1.45; the surface goes on past the tile boundary at y = 1.5 (edge 3 l =
+    # 0.75 m) into a tile with no data of its own, and the tiled mesh must draw it there too
+    from scipy.spatial import cKDTree
+
+    fixed = dict(optimize=False, lengthscale=0.25, signal_var=1.0)
+    obs = box_flight((0.5, 0.5, 0.5), gusts=())  # all of it, and its reach, in one 4 m tile
+    tiled = SurfaceModel(MappingSettings(tile_m=0.5, **fixed), SurfaceSettings())
+    whole = SurfaceModel(MappingSettings(tile_m=4.0, **fixed), SurfaceSettings())
+    tiled.fit(obs)
+    whole.fit(obs)
+    a, b = tiled.mesh(), whole.mesh()
+    assert b.vertices[:, 1].max() > 1.55  # the one big fit draws surface past the boundary
+    d, _ = cKDTree(a.vertices).query(b.vertices)
+    assert d.max() < 2.0 * whole.spacing_m()
+
+
+def test_a_tile_whose_halo_holds_one_row_is_not_fitted():
+    # short length scale, small tiles: tiles within reach of a touch whose halo catches only
+    # one of its rows (a GP needs two); fitting them raised, and the live refit was lost
+    model = SurfaceModel(
+        MappingSettings(optimize=False, lengthscale=0.25, tile_m=0.5), SurfaceSettings()
+    )
+    model.fit(box_flight(seed=1, gusts=()))
+    assert not model.mesh().is_empty
