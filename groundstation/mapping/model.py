@@ -46,13 +46,15 @@ from groundstation.mapping.surface import SurfaceMesh, confident_part, extract_s
 from groundstation.mapping.tiles import TileLayout, signature
 from groundstation.mapping.training import TrainingPolicy, TrainingSet, build_training_set
 
-_DEFAULT_MAPPING = MappingSettings()
-#: The surface is drawn up to this many length scales from an anchor (:meth:`SurfaceModel.reach_m`).
+#: The surface is drawn up to this many length scales from an anchor
+#: (:meth:`SurfaceModel.reach_m`).
 REACH_LENGTHSCALES = 2.5
 #: The kernel's learning tile holds at least this halo, metres: at l = 0.1 m a halo of 3 l
 #: left too little surface there to learn it from (the bundled wall survey's final map became
 #: worse than its live one, 853585c).
 LEARN_HALO_MIN_M = 0.75
+
+_DEFAULT_MAPPING = MappingSettings()
 _DEFAULT_SURFACE = SurfaceSettings()
 
 
