@@ -353,7 +353,7 @@ class FoxgloveTranslator:
     def _trajectory(self, t: int, force: bool, log_t: int | None = None) -> list[FoxgloveMessage]:
         version, last = self._traj_sent
         tr = self.trajectory
-        if tr.version == version or len(tr.points()) < 2:
+        if tr.version == version or len(tr) < 2:  # points() copies the whole path
             return []
         if not force and t - last < self.settings.trajectory_period_s * 1e9:
             return []

@@ -172,6 +172,10 @@ class Trajectory:
         self.version += 1
         return True
 
+    def __len__(self) -> int:
+        """Kept positions (without building :meth:`points`)."""
+        return len(self._pts)
+
     def points(self) -> np.ndarray:
         """(m, 3) kept positions, metres, oldest first."""
         return np.asarray(self._pts, dtype=np.float64).reshape(-1, 3)

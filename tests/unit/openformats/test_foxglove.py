@@ -150,6 +150,7 @@ def test_trajectory_stays_bounded_on_a_long_flight():
         tr.add(k, [0.01 * k, 0.0, 0.0])  # 200 m
     pts = tr.points()
     assert len(pts) <= 100 and pts[-1][0] > 190 and tr.spacing_m > 0.05
+    assert len(tr) == len(pts)
 
 
 def test_signal_threshold_and_events_are_plottable_and_logs_keep_their_level():
