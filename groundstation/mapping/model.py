@@ -42,7 +42,12 @@ from groundstation.mapping.field import narrow_band_field
 from groundstation.mapping.grid import Grid
 from groundstation.mapping.mixture import EventMixtureGPIS, Groups, KernelBounds, MixtureFit
 from groundstation.mapping.settings import MappingSettings, SurfaceSettings
-from groundstation.mapping.surface import SurfaceMesh, confident_part, extract_surface
+from groundstation.mapping.surface import (
+    SurfaceMesh,
+    confident_part,
+    extract_surface,
+    weld_lattice,
+)
 from groundstation.mapping.tiles import TileLayout, signature
 from groundstation.mapping.training import TrainingPolicy, TrainingSet, build_training_set
 
@@ -607,7 +612,8 @@ class SurfaceModel:
 
     def mesh(self, with_std: bool = True) -> SurfaceMesh:
         """Zero-level mesh with the predictive std at its vertices, confident faces only:
-        the union of the tiles' meshes (a tile whose fit did not change keeps its mesh)."""
+        the union of the tiles' meshes (a tile whose fit did not change keeps its mesh), welded
+        where neighbours meet (``surface.weld_lattice``: one surface, not one per tile)."""
         self._check()
         if self.training_set_.X.shape[1] != 3:
             raise InputDataError("mesh() needs 3D data; use predict on a 2D grid instead")
@@ -619,7 +625,7 @@ class SurfaceModel:
                     tile.mesh = self._tile_mesh(tile, s)
                     tile.mesh_key = s
         parts = [t.mesh for t in self._tiles.values() if not t.mesh.is_empty]
-        mesh = _concatenate(parts)
+        mesh = weld_lattice(_concatenate(parts), s)  # neighbours share their boundary plane
         self.timings_.update(mesh_s=time.perf_counter() - t0)
         return mesh
 

@@ -94,6 +94,63 @@ def confident_part(mesh: SurfaceMesh, max_std: float) -> SurfaceMesh:
     return SurfaceMesh(mesh.vertices[used], index[faces], mesh.normals[used], mesh.std[used])
 
 
+def weld_lattice(mesh: SurfaceMesh, spacing: float) -> SurfaceMesh:
+    """One vertex per lattice edge: the meshes of grids that share lattice planes (the map's
+    tiles, each on the global lattice of ``spacing`` metres through the origin) joined into one
+    surface, without seams.
+
+    Marching cubes puts every vertex on an edge of its grid, so a vertex is identified by that
+    edge: the axis along which it is fractional, the lattice index before it on that axis and its
+    lattice indices on the other two. Two tiles meshing their shared plane put a vertex on the
+    same edge, each from its own field (they agree to the tiles' fit, not to the last bit): the
+    two become one, at their mean position, with their mean normal and std. Left apart, a patch
+    of surface crossing a tile boundary was two patches (``metrics.phantom_patches`` counted a
+    0.34 m^2 phantom patch as 0.13 m^2) and the seam a crack in the mesh.
+
+    A vertex at a lattice point is keyed by that point; one on no edge keeps its own place."""
+    v = mesh.vertices
+    if v.shape[0] == 0:
+        return mesh
+    if not (np.isfinite(spacing) and spacing > 0):
+        raise GridError(f"weld spacing must be a positive number of metres, got {spacing}")
+    idx = v / spacing
+    near = np.rint(idx)
+    on = np.abs(idx - near) <= 1e-4  # marching cubes' float32 grid indices: ~1e-5 off
+    axis = np.where(on.sum(axis=1) == 2, np.argmin(on, axis=1), -1)  # the fractional axis
+    key = near.astype(np.int64)
+    rows = np.flatnonzero(axis >= 0)
+    key[rows, axis[rows]] = np.floor(idx[rows, axis[rows]]).astype(np.int64)
+    point = on.all(axis=1)  # at a lattice point: that point is its key
+    lone = (axis < 0) & ~point  # on no edge: its own key (its index, out of the lattice's way)
+    key[lone] = 0
+    key[lone, 0] = np.flatnonzero(lone)
+    tag = np.where(point, 3, np.where(lone, -1, axis))[:, None]
+    _, inv = np.unique(np.hstack([tag, key]), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    m = int(inv.max()) + 1
+    if m == v.shape[0]:
+        return mesh
+    count = np.bincount(inv, minlength=m).astype(np.float64)[:, None]
+
+    def mean(a: np.ndarray) -> np.ndarray:
+        out = np.zeros((m,) + a.shape[1:])
+        np.add.at(out, inv, a)
+        return out / (count if a.ndim == 2 else count[:, 0])
+
+    normals = mean(mesh.normals)
+    norm = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.divide(normals, norm, out=np.zeros_like(normals), where=norm > 0)
+    faces = inv[mesh.faces]
+    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
+    keep &= faces[:, 0] != faces[:, 2]
+    return SurfaceMesh(
+        vertices=mean(v),
+        faces=faces[keep],
+        normals=normals,
+        std=None if mesh.std is None else mean(mesh.std),
+    )
+
+
 def _check_field(values: np.ndarray, grid: Grid, what: str) -> np.ndarray:
     arr = np.asarray(values, dtype=np.float64)
     if arr.shape != grid.shape:

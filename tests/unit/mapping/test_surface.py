@@ -12,6 +12,7 @@ from groundstation.mapping.surface import (
     extract_surface,
     std_colors,
     to_open3d,
+    weld_lattice,
     write_ply,
 )
 
@@ -173,3 +174,33 @@ def test_write_ply_missing_folder(tmp_path):
 
     with pytest.raises(SurfaceWriteError, match="missing"):
         write_ply(SurfaceMesh.empty(), tmp_path / "nope" / "x.ply")
+
+
+def test_meshes_of_grids_sharing_a_plane_weld_into_the_one_grid_mesh():
+    """Two grids on one lattice (spacing 0.05 m) meeting at x = 0.5 mesh a tilted plane (through
+    no lattice point); welded, their union has the vertices and faces of the mesh of one grid
+    over both, at its places."""
+    s = 0.05
+
+    def field(grid):
+        p = grid.points()
+        return (p[:, 0] + 0.3 * p[:, 1] - 0.2 * p[:, 2] - 0.6237).reshape(grid.shape)
+
+    a = Grid.from_bounds((0.0, 0.0, 0.0), (0.5, 1.0, 1.0), s)
+    b = Grid.from_bounds((0.5, 0.0, 0.0), (1.0, 1.0, 1.0), s)
+    whole = Grid.from_bounds((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), s)
+    ma, mb = extract_surface(field(a), a), extract_surface(field(b), b)
+    joined = SurfaceMesh(
+        np.vstack([ma.vertices, mb.vertices]),
+        np.vstack([ma.faces, mb.faces + len(ma.vertices)]),
+        np.vstack([ma.normals, mb.normals]),
+    )
+    one = extract_surface(field(whole), whole)
+    welded = weld_lattice(joined, s)
+    assert len(joined.vertices) > len(one.vertices)  # the shared plane's vertices, twice
+    assert len(welded.vertices) == len(one.vertices) and len(welded.faces) == len(one.faces)
+    order = lambda v: v[np.lexsort(v.T)]  # noqa: E731
+    np.testing.assert_allclose(order(welded.vertices), order(one.vertices), atol=1e-9)
+    assert weld_lattice(one, s) is one  # nothing to weld
+    with pytest.raises(GridError):
+        weld_lattice(joined, 0.0)

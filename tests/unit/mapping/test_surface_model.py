@@ -314,3 +314,29 @@ def test_a_tile_whose_halo_holds_one_row_is_not_fitted():
     )
     model.fit(box_flight(seed=1, gusts=()))
     assert not model.mesh().is_empty
+
+
+def test_a_face_across_tile_boundaries_is_one_welded_surface():
+    # the face x = 0.5 (y, z in 0.5..1.5) crosses the 1 m tiles' boundaries y = 1 and z = 1:
+    # each tile meshes its core up to the shared plane, and the map joins them into one surface
+    # (before, the tiles' vertices on a shared plane were duplicates, the face four pieces, and
+    # a phantom patch crossing a boundary was counted as two smaller ones)
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    fixed = MappingSettings(optimize=False, lengthscale=0.25, signal_var=1.0, tile_m=1.0)
+    model = SurfaceModel(fixed, SurfaceSettings())
+    model.fit(box_flight((0.5, 0.5, 0.5), gusts=()))
+    assert len(model._tiles) > 1
+    mesh = model.mesh()
+    v, f = mesh.vertices, mesh.faces
+    face = (np.abs(v[:, 0] - 0.5) < 0.05) & np.all((v[:, 1:] > 0.6) & (v[:, 1:] < 1.4), axis=1)
+    keep = face[f].all(axis=1)
+    ff = f[keep]
+    rows = np.repeat(np.arange(len(ff)), 3)
+    g = coo_matrix((np.ones(rows.size), (rows, len(ff) + ff.reshape(-1))),
+                   shape=(len(ff) + len(v),) * 2)  # fmt: skip
+    _, lab = connected_components(g, directed=False)
+    assert len(set(lab[: len(ff)].tolist())) == 1  # one piece across both boundaries
+    _, counts = np.unique(np.round(v / 1e-5).astype(np.int64), axis=0, return_counts=True)
+    assert counts.max() == 1  # no vertex twice
