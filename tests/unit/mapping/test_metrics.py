@@ -155,3 +155,15 @@ def test_phantom_patches_are_separate_pieces_largest_first_with_where_they_lie()
     (flat,) = phantom_patches(sliver, np.array([[0, 1, 2]]), floor)
     assert flat.area_m2 == 0.0 and flat.centre == pytest.approx((1.0, 0.0, 1.0))
     assert phantom_patches(v, np.zeros((0, 3), dtype=int), floor) == ()
+
+
+def test_a_phantom_patch_in_pieces_whose_seam_repeats_vertices_is_one_patch():
+    # two 1 x 0.5 m halves of one floating square, meshed apart (as two map tiles are): the seam
+    # y = 0.5 has each vertex twice, 0.2 mm apart; joined, it is one 1 m^2 patch, not two
+    floor = lambda p: p[:, 2]  # noqa: E731
+    a, b = _square(0.0, 0.0, 0.5, 0.5), _square(0.0, 0.5, 0.5, 0.5)
+    va, vb = a[0] * [2.0, 1.0, 1.0], b[0] * [2.0, 1.0, 1.0] + [0.0, 2e-4, 0.0]
+    v, f = np.vstack([va, vb]), np.vstack([a[1], b[1] + len(va)])
+    (one,) = phantom_patches(v, f, floor)
+    assert one.area_m2 == pytest.approx(1.0, rel=1e-3)
+    assert [round(p.area_m2, 3) for p in phantom_patches(v, f, floor, join_m=0.0)] == [0.5, 0.5]
