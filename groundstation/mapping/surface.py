@@ -124,18 +124,28 @@ def weld_lattice(mesh: SurfaceMesh, spacing: float) -> SurfaceMesh:
     lone = (axis < 0) & ~point  # on no edge: its own key (its index, out of the lattice's way)
     key[lone] = 0
     key[lone, 0] = np.flatnonzero(lone)
-    tag = np.where(point, 3, np.where(lone, -1, axis))[:, None]
-    _, inv = np.unique(np.hstack([tag, key]), axis=0, return_inverse=True)
+    cols = np.column_stack([np.where(point, 3, np.where(lone, -1, axis)), key])
+    cols -= cols.min(axis=0)
+    size = cols.max(axis=0) + 1
+    if float(np.prod(size.astype(np.float64))) < 2.0**62:  # one int64 per key: a 1D sort
+        flat = cols[:, 0]
+        for k in range(1, cols.shape[1]):
+            flat = flat * size[k] + cols[:, k]
+        _, inv = np.unique(flat, return_inverse=True)
+    else:
+        _, inv = np.unique(cols, axis=0, return_inverse=True)
     inv = inv.reshape(-1)
     m = int(inv.max()) + 1
     if m == v.shape[0]:
         return mesh
-    count = np.bincount(inv, minlength=m).astype(np.float64)[:, None]
+    count = np.bincount(inv, minlength=m).astype(np.float64)
 
     def mean(a: np.ndarray) -> np.ndarray:
-        out = np.zeros((m,) + a.shape[1:])
-        np.add.at(out, inv, a)
-        return out / (count if a.ndim == 2 else count[:, 0])
+        if a.ndim == 1:
+            return np.bincount(inv, weights=a, minlength=m) / count
+        return np.column_stack(
+            [np.bincount(inv, weights=a[:, j], minlength=m) / count for j in range(a.shape[1])]
+        )
 
     normals = mean(mesh.normals)
     norm = np.linalg.norm(normals, axis=1, keepdims=True)
