@@ -204,3 +204,14 @@ def test_meshes_of_grids_sharing_a_plane_weld_into_the_one_grid_mesh():
     assert weld_lattice(one, s) is one  # nothing to weld
     with pytest.raises(GridError):
         weld_lattice(joined, 0.0)
+
+
+def test_weld_keys_lattices_too_wide_for_one_int64_by_rows():
+    # vertices 4e6 lattice steps apart on every axis: the edge keys do not fit one int64, and
+    # the row-wise path must give the same weld (the two copies of one edge's vertex become one)
+    s = 0.05
+    v = np.array([[0.0125, 0.0, 0.0], [0.0126, 0.0, 0.0], [2e5, 2e5, 2e5 + 0.01], [0.0, 0.05, 0.0]])
+    mesh = SurfaceMesh(v, np.array([[0, 2, 3], [1, 2, 3]]), np.tile([0.0, 0.0, 1.0], (4, 1)))
+    welded = weld_lattice(mesh, s)
+    assert len(welded.vertices) == 3 and welded.faces.max() == 2
+    np.testing.assert_allclose(welded.vertices[np.argmin(welded.vertices[:, 1])], [0.01255, 0, 0])
