@@ -160,116 +160,177 @@ def group_key(event_id: int, ids: Sequence[int]) -> tuple:
     return ("e", int(event_id)) if event_id >= 0 else ("o", int(min(ids)))
 
 
-def _event_keys(obs: Sequence[Observation], gap_ns: int) -> dict[int, tuple]:
-    """Group key of every contact and internal observation: its detector event, or, without
-    one, the run of such observations no more than ``gap_ns`` apart in time."""
-    keys: dict[int, tuple] = {}
-    loose = sorted((o for o in obs if o.label <= 0 and o.event_id < 0), key=lambda o: o.t_ns)
-    run, last = -1, None
-    for o in loose:
-        if last is None or o.t_ns - last > gap_ns:
-            run += 1
-        keys[o.id] = ("run", run)
-        last = o.t_ns
-    for o in obs:
-        if o.label <= 0 and o.event_id >= 0:
-            keys[o.id] = ("event", int(o.event_id))
-    return keys
+@dataclasses.dataclass(frozen=True)
+class _Columns:
+    """The observations as arrays, in id order (one Python pass over them, then numpy)."""
+
+    ids: np.ndarray  # (n,) int64, increasing
+    t: np.ndarray  # (n,) int64
+    label: np.ndarray  # (n,) float64
+    X: np.ndarray  # (n, d) float64
+    N: np.ndarray  # (n, d) float64, normals
+    event: np.ndarray  # (n,) int64
+    p_false: np.ndarray  # (n,) float64
+    sigma: np.ndarray  # (n,) float64
+
+    @classmethod
+    def of(cls, obs: Sequence[Observation]) -> _Columns:
+        obs = sorted(obs, key=lambda o: o.id)
+        n = len(obs)
+        X = np.array([o.position for o in obs], dtype=np.float64).reshape(n, -1 if n else 3)
+        return cls(
+            ids=np.fromiter((o.id for o in obs), np.int64, n),
+            t=np.fromiter((o.t_ns for o in obs), np.int64, n),
+            label=np.fromiter((o.label for o in obs), np.float64, n),
+            X=X,
+            N=np.array([o.normal for o in obs], dtype=np.float64).reshape(X.shape),
+            event=np.fromiter((o.event_id for o in obs), np.int64, n),
+            p_false=np.fromiter((o.p_false for o in obs), np.float64, n),
+            sigma=np.fromiter((o.sigma_m for o in obs), np.float64, n),
+        )
 
 
-@dataclasses.dataclass
-class _Group:
-    event_id: int
-    ids: list[int] = dataclasses.field(default_factory=list)
-    priors: list[float] = dataclasses.field(default_factory=list)
-    t: list[int] = dataclasses.field(default_factory=list)
-    contacts: list[np.ndarray] = dataclasses.field(default_factory=list)
-    normals: list[np.ndarray] = dataclasses.field(default_factory=list)
-    cells: dict = dataclasses.field(default_factory=dict)  # (label, voxel) -> [ids, xs, s2s, ns]
+def _group_of(col: _Columns, rows: np.ndarray, gap_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """Group of each contact or internal observation ``rows`` (indices into ``col``, in id
+    order): its detector event, or, without one, the run of such observations no more than
+    ``gap_ns`` apart in time. Groups are numbered in the order of their first observation.
+    Returns (group of each row, event id of each group (-1 for a run))."""
+    ev = col.event[rows]
+    code = ev.copy()
+    loose = np.flatnonzero(ev < 0)
+    if loose.size:
+        order = np.argsort(col.t[rows[loose]], kind="stable")
+        t_sorted = col.t[rows[loose]][order]
+        new = np.ones(loose.size, dtype=bool)
+        new[1:] = np.diff(t_sorted) > gap_ns
+        run = np.empty(loose.size, dtype=np.int64)
+        run[order] = np.cumsum(new) - 1
+        code[loose] = -1 - run  # runs below every event id
+    codes, first, inv = np.unique(code, return_index=True, return_inverse=True)
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    event_ids = np.where(codes[order] >= 0, codes[order], -1)
+    return rank[inv.reshape(-1)], event_ids
+
+
+def _sums(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
+    """Per-``index`` sums of ``values`` ((n,) or (n, d)), in input order."""
+    if values.ndim == 1:
+        return np.bincount(index, weights=values, minlength=size)
+    return np.stack(
+        [np.bincount(index, weights=values[:, k], minlength=size) for k in range(values.shape[1])],
+        axis=1,
+    ).reshape(size, values.shape[1])
+
+
+def _split(values: np.ndarray, index: np.ndarray, size: int) -> list[np.ndarray]:
+    """``values`` split by ``index`` (0..size-1), each part in input order."""
+    if size == 0:
+        return []
+    order = np.argsort(index, kind="stable")
+    cuts = np.cumsum(np.bincount(index, minlength=size))[:-1]
+    return np.split(values[order], cuts)
 
 
 def build_training_set(
     obs: Sequence[Observation], policy: TrainingPolicy, settled: frozenset = frozenset()
 ) -> TrainingSet:
     """Rows, groups, priors, bursts and swept-volume evidence of ``obs`` (any order);
-    ``settled``: the :func:`group_key` of the groups to pool (module docstring)."""
+    ``settled``: the :func:`group_key` of the groups to pool (module docstring).
+
+    Rows come in this order: free space (by id), each group's voxels (groups by their first
+    observation, voxels by theirs), the settled pool (by voxel), tangent and plane rows."""
     p = policy
-    obs = sorted(obs, key=lambda o: o.id)
+    col = _Columns.of(obs)
+    d = col.X.shape[1]
     slope = abs(p.inside_value) / p.internal_depth_m
-    keys = _event_keys(obs, int(p.event_gap_s * 1e9))
-    groups: dict[tuple, _Group] = {}
-    rows_X, rows_y, rows_s2, rows_m, rows_g = [], [], [], [], []
-    free_seen: set[tuple[int, ...]] = set()
-    free_pts, free_t = [], []
-    for o in obs:
-        x = np.asarray(o.position, dtype=np.float64)
-        if o.label > 0:
-            free_pts.append(x)
-            free_t.append(int(o.t_ns))
-            key = tuple(np.floor(x / p.free_voxel_m).astype(np.int64).tolist())
-            if key in free_seen:
-                continue
-            free_seen.add(key)
-            rows_X.append(x)
-            rows_y.append(1.0)
-            rows_s2.append(p.free_noise**2)
-            rows_m.append(np.array([o.id], dtype=np.int64))
-            rows_g.append(-1)
-            continue
-        grp = groups.setdefault(keys[o.id], _Group(int(o.event_id)))
-        grp.ids.append(o.id)
-        grp.t.append(int(o.t_ns))
-        if math.isfinite(o.p_false):
-            grp.priors.append(float(o.p_false))
-        if o.label == 0:
-            grp.contacts.append(x)
-            grp.normals.append(np.asarray(o.normal, dtype=np.float64))
-        sig = o.sigma_m if math.isfinite(o.sigma_m) else 0.0
-        cell = (int(o.label), *np.floor(x / p.contact_voxel_m).astype(np.int64).tolist())
-        ids, xs, s2s, ns = grp.cells.setdefault(cell, ([], [], [], []))
-        ids.append(o.id)
-        xs.append(x)
-        s2s.append(p.contact_noise**2 + (slope * sig) ** 2)
-        ns.append(np.asarray(o.normal, dtype=np.float64))
-    glist = list(groups.values())
-    d = (
-        len(rows_X[0])
-        if rows_X
-        else (len(glist[0].contacts[0]) if glist and glist[0].contacts else 3)
+    free = np.flatnonzero(col.label > 0)
+    _, first = np.unique(
+        np.floor(col.X[free] / p.free_voxel_m).astype(np.int64), axis=0, return_index=True
     )
-    dirs = [np.zeros(d)] * len(rows_X)
-    gkeys = tuple(group_key(grp.event_id, grp.ids) for grp in glist)
+    free_rows = free[np.sort(first)]  # the first sample of each free voxel
+    rows_X = [col.X[free_rows]]
+    rows_y = [np.ones(free_rows.size)]
+    rows_s2 = [np.full(free_rows.size, p.free_noise**2)]
+    rows_m: list[np.ndarray] = [col.ids[i : i + 1] for i in free_rows]
+    rows_g = [np.full(free_rows.size, -1, dtype=np.int64)]
+
+    # groups: contact and internal observations by event (or run)
+    shape = np.flatnonzero(col.label <= 0)
+    g_of, event_ids = _group_of(col, shape, int(p.event_gap_s * 1e9))
+    G = event_ids.size
+    ids_of = _split(col.ids[shape], g_of, G)
+    gkeys = tuple(group_key(int(e), ids) for e, ids in zip(event_ids, ids_of, strict=True))
     is_settled = np.array([k in settled for k in gkeys], dtype=bool)
-    pool: dict[tuple, list] = {}  # (label, coarse voxel) -> [ids, sum w x, sum w]
-    for g, grp in enumerate(glist):
-        for (label, *_), (ids, xs, s2s, ns) in grp.cells.items():
-            x, s2 = np.mean(xs, axis=0), float(np.mean(s2s))  # a group's voxel: one row
-            if is_settled[g]:  # pooled per voxel and face (two faces of an edge stay apart)
-                cell = (label, _face(np.mean(ns, axis=0)),
-                        *np.floor(x / p.settled_voxel_m).astype(np.int64).tolist())  # fmt: skip
-                acc = pool.setdefault(cell, [[], np.zeros(d), 0.0])
-                acc[0].extend(ids)
-                acc[1] += x / s2
-                acc[2] += 1.0 / s2
-                continue
-            rows_X.append(x)
-            rows_y.append(0.0 if label == 0 else p.inside_value)
-            rows_s2.append(s2)
-            rows_m.append(np.asarray(ids, dtype=np.int64))
-            rows_g.append(g)
-            dirs.append(np.zeros(d))
-    for (label, *_), (ids, wx, w) in sorted(pool.items()):
-        rows_X.append(wx / w)
-        rows_y.append(0.0 if label == 0 else p.inside_value)
+    normals = col.N[shape]
+    is_contact = col.label[shape] == 0
+    contacts = _split(col.X[shape][is_contact], g_of[is_contact], G)
+    cen, nrm = _centres_normals(col.X[shape][is_contact], normals[is_contact], g_of[is_contact], G)
+    pf = col.p_false[shape]
+    known = np.isfinite(pf)
+    n_known = np.bincount(g_of[known], minlength=G)
+    prior = np.where(
+        n_known > 0,
+        _sums(g_of[known], pf[known], G) / np.maximum(n_known, 1),
+        p.prior_false,
+    )
+
+    # one row per group and voxel (label, contact_voxel_m) at the mean of its samples
+    lab = col.label[shape].astype(np.int64)
+    vox = np.floor(col.X[shape] / p.contact_voxel_m).astype(np.int64)
+    _, cfirst, cinv = np.unique(
+        np.column_stack([g_of, lab, vox]), axis=0, return_index=True, return_inverse=True
+    )
+    corder = np.lexsort((cfirst, g_of[cfirst]))  # by group, then by first sample
+    crank = np.empty_like(corder)
+    crank[corder] = np.arange(corder.size)
+    cell = crank[cinv.reshape(-1)]
+    C = corder.size
+    n_cell = np.bincount(cell, minlength=C).astype(np.float64)
+    sig = col.sigma[shape]
+    s2 = p.contact_noise**2 + (slope * np.where(np.isfinite(sig), sig, 0.0)) ** 2
+    cell_x = _sums(cell, col.X[shape], C) / n_cell[:, None]
+    cell_s2 = _sums(cell, s2, C) / n_cell
+    cell_g = g_of[cfirst[corder]]
+    cell_lab = lab[cfirst[corder]]
+    cell_ids = _split(col.ids[shape], cell, C)
+    kept = np.flatnonzero(~is_settled[cell_g])
+    rows_X.append(cell_x[kept])
+    rows_y.append(np.where(cell_lab[kept] == 0, 0.0, p.inside_value))
+    rows_s2.append(cell_s2[kept])
+    rows_m.extend(cell_ids[c] for c in kept)
+    rows_g.append(cell_g[kept])
+
+    # settled groups: their voxels pooled per settled voxel and face, precision-weighted
+    pooled = np.flatnonzero(is_settled[cell_g])
+    if pooled.size:
+        face = _faces(_sums(cell, normals, C)[pooled] / n_cell[pooled, None])
+        pkey = np.column_stack([
+            cell_lab[pooled], face,
+            np.floor(cell_x[pooled] / p.settled_voxel_m).astype(np.int64),
+        ])  # fmt: skip
+        _, pinv = np.unique(pkey, axis=0, return_inverse=True)
+        pinv = pinv.reshape(-1)
+        P = int(pinv.max()) + 1
+        w = _sums(pinv, 1.0 / cell_s2[pooled], P)
+        rows_X.append(_sums(pinv, cell_x[pooled] / cell_s2[pooled, None], P) / w[:, None])
+        plab = np.zeros(P, dtype=np.int64)
+        plab[pinv] = cell_lab[pooled]
+        rows_y.append(np.where(plab == 0, 0.0, p.inside_value))
         rows_s2.append(1.0 / w)
-        rows_m.append(np.asarray(sorted(ids), dtype=np.int64))
-        rows_g.append(-1)
-        dirs.append(np.zeros(d))
+        members = _split(np.arange(pooled.size), pinv, P)
+        rows_m.extend(np.sort(np.concatenate([cell_ids[pooled[k]] for k in m])) for m in members)
+        rows_g.append(np.full(P, -1, dtype=np.int64))
+    n_value = sum(len(x) for x in rows_X)
+    dirs = [np.zeros((n_value, d))]
+
+    # tangent-plane rows (and a lone touch's plane points)
     tangent_cells: set[tuple] = set()
     if p.tangent_slope_noise > 0 and d == 3:
-        lone = _lone([grp.contacts for grp in glist], p.plane_reach_m)
-        cen, nrm = _centres_normals(glist, d)
-        for g, grp in enumerate(glist):
+        lone = _lone(contacts, cen, p.plane_reach_m)
+        none = np.zeros(0, dtype=np.int64)
+        for g in range(G):
             n = nrm[g]  # zero without contacts or where their normals disagree
             if not n.any():
                 continue
@@ -278,77 +339,73 @@ def build_training_set(
             b = np.cross(n, a)
             centre = cen[g]
             if is_settled[g]:  # settled: one event's tangents per voxel (rows bounded by area)
-                cell = tuple(np.floor(centre / p.settled_voxel_m).astype(np.int64).tolist())
-                if cell in tangent_cells:
+                key = tuple(np.floor(centre / p.settled_voxel_m).astype(np.int64).tolist())
+                if key in tangent_cells:
                     continue
-                tangent_cells.add(cell)
-            none = np.zeros(0, dtype=np.int64)
-            for v in (a, b):
-                rows_X.append(centre)
-                rows_y.append(0.0)
-                rows_s2.append(p.tangent_slope_noise**2)
-                rows_m.append(none)
-                rows_g.append(-1 if is_settled[g] else g)
-                dirs.append(v)
-            prior_g = float(np.mean(grp.priors)) if grp.priors else p.prior_false
-            if p.plane_reach_m > 0 and lone[g] and prior_g <= p.plane_max_p_false:
+                tangent_cells.add(key)
+            owner = -1 if is_settled[g] else g
+            extra = [centre, centre]
+            dirs.append(np.array([a, b]))
+            s2_extra = [p.tangent_slope_noise**2] * 2
+            if p.plane_reach_m > 0 and lone[g] and prior[g] <= p.plane_max_p_false:
                 rho = p.plane_reach_m
-                s2_plane = p.contact_noise**2 + (p.plane_noise_per_m * rho) ** 2
-                for q in _plane_points(g, centre, (a, -a, b, -b), cen, nrm, rho):
-                    rows_X.append(q)
-                    rows_y.append(0.0)
-                    rows_s2.append(s2_plane)
-                    rows_m.append(none)
-                    rows_g.append(-1 if is_settled[g] else g)
-                    dirs.append(np.zeros(d))
-    X = np.asarray(rows_X, dtype=np.float64).reshape(-1, d)
-    prior = np.array(
-        [float(np.mean(grp.priors)) if grp.priors else p.prior_false for grp in glist],
-        dtype=np.float64,
-    )
-    t_span = [(min(grp.t), max(grp.t)) for grp in glist]
-    centre = [
-        np.mean(grp.contacts, axis=0) if grp.contacts else np.full(d, np.nan) for grp in glist
-    ]
-    burst = _bursts(t_span, centre, p)
+                qs = _plane_points(g, centre, (a, -a, b, -b), cen, nrm, rho)
+                extra += qs
+                dirs.append(np.zeros((len(qs), 3)))
+                s2_extra += [p.contact_noise**2 + (p.plane_noise_per_m * rho) ** 2] * len(qs)
+            rows_X.append(np.array(extra))
+            rows_y.append(np.zeros(len(extra)))
+            rows_s2.append(np.array(s2_extra))
+            rows_m.extend([none] * len(extra))
+            rows_g.append(np.full(len(extra), owner, dtype=np.int64))
+
+    t_lo = np.full(G, np.iinfo(np.int64).max)
+    t_hi = np.full(G, np.iinfo(np.int64).min)
+    np.minimum.at(t_lo, g_of, col.t[shape])
+    np.maximum.at(t_hi, g_of, col.t[shape])
+    t_span = list(zip(t_lo.tolist(), t_hi.tolist(), strict=True))
+    burst = _bursts(t_span, list(cen), p)
     size = np.bincount(burst, minlength=int(burst.max(initial=-1)) + 1) if burst.size else burst
     clustered = size[burst] >= p.burst_events_min if burst.size else np.zeros(0, dtype=bool)
-    contacts = [grp.contacts for grp in glist]
-    swept = _swept(contacts, t_span, np.asarray(free_pts).reshape(-1, d),
-                   np.asarray(free_t, dtype=np.int64), p)  # fmt: skip
+    is_free = col.label > 0
+    swept = _swept(contacts, t_span, col.X[is_free], col.t[is_free], p)
     return TrainingSet(
-        X=X,
-        directions=np.asarray(dirs, dtype=np.float64).reshape(-1, d),
-        y=np.asarray(rows_y, dtype=np.float64),
-        noise_var=np.asarray(rows_s2, dtype=np.float64),
-        row_members=tuple(rows_m),
+        X=np.concatenate(rows_X).reshape(-1, d),
+        directions=np.concatenate(dirs).reshape(-1, d),
+        y=np.concatenate(rows_y).astype(np.float64),
+        noise_var=np.concatenate(rows_s2).astype(np.float64),
+        row_members=tuple(np.asarray(m, dtype=np.int64) for m in rows_m),
         groups=Groups(
-            row_group=np.asarray(rows_g, dtype=np.int64),
-            prior_false=prior,
+            row_group=np.concatenate(rows_g).astype(np.int64),
+            prior_false=prior.astype(np.float64),
             burst=burst,
             extra_llr=np.where(swept, p.sweep_llr, 0.0) + np.where(clustered, p.burst_llr, 0.0),
         ),
-        event_ids=np.asarray([grp.event_id for grp in glist], dtype=np.int64),
-        group_ids=tuple(np.asarray(grp.ids, dtype=np.int64) for grp in glist),
+        event_ids=event_ids.astype(np.int64),
+        group_ids=tuple(ids_of),
         swept=swept,
         keys=gkeys,
-        t_end_ns=np.asarray([hi for _, hi in t_span], dtype=np.int64),
+        t_end_ns=t_hi,
         settled=is_settled,
         n_raw=len(obs),
     )
 
 
-def _centres_normals(glist: list[_Group], d: int) -> tuple[np.ndarray, np.ndarray]:
+def _centres_normals(
+    X: np.ndarray, N: np.ndarray, g: np.ndarray, G: int
+) -> tuple[np.ndarray, np.ndarray]:
     """(G, d) contact centroid (NaN without contacts) and unit mean normal (0 where the
-    normals do not agree on one) of every group."""
-    cen = np.full((len(glist), d), np.nan)
-    nrm = np.zeros((len(glist), d))
-    for g, grp in enumerate(glist):
-        if grp.contacts:
-            cen[g] = np.mean(grp.contacts, axis=0)
-            n = np.mean(grp.normals, axis=0)
-            if float(np.linalg.norm(n)) >= 0.5:
-                nrm[g] = n / np.linalg.norm(n)
+    normals do not agree on one) of every group, from its contacts ``X``, normals ``N``."""
+    d = X.shape[1]
+    cnt = np.bincount(g, minlength=G).astype(np.float64)
+    has = cnt > 0
+    cen = np.full((G, d), np.nan)
+    cen[has] = _sums(g, X, G)[has] / cnt[has, None]
+    mean_n = _sums(g, N, G) / np.maximum(cnt, 1.0)[:, None]
+    norm = np.linalg.norm(mean_n, axis=1)
+    nrm = np.zeros((G, d))
+    ok = has & (norm >= 0.5)
+    nrm[ok] = mean_n[ok] / norm[ok, None]
     return cen, nrm
 
 
@@ -396,30 +453,33 @@ def _plane_points(
     return out
 
 
-def _lone(contacts: list[list[np.ndarray]], radius: float) -> np.ndarray:
+def _lone(contacts: list[np.ndarray], centres: np.ndarray, radius: float) -> np.ndarray:
     """(G,) bool: no other group's contact lies within ``radius`` of the group's contact
-    centroid (groups without contacts count as lone; ``radius`` <= 0: every group)."""
+    centroid ``centres[g]`` (groups without contacts count as lone; ``radius`` <= 0: every
+    group)."""
     lone = np.ones(len(contacts), dtype=bool)
-    pts = [x for cs in contacts for x in cs]
-    if radius <= 0 or not pts:
+    sizes = [len(cs) for cs in contacts]
+    if radius <= 0 or not sum(sizes):
         return lone
     from scipy.spatial import cKDTree
 
-    owner = np.repeat(np.arange(len(contacts)), [len(cs) for cs in contacts])
-    has = np.flatnonzero([len(cs) > 0 for cs in contacts])
-    centres = np.array([np.mean(contacts[g], axis=0) for g in has])
-    nears = cKDTree(np.asarray(pts)).query_ball_point(centres, radius)
+    owner = np.repeat(np.arange(len(contacts)), sizes)
+    has = np.flatnonzero(sizes)
+    nears = cKDTree(np.concatenate(contacts)).query_ball_point(centres[has], radius)
     for g, near in zip(has, nears, strict=True):
         lone[g] = not np.any(owner[np.asarray(near, dtype=np.int64)] != g)
     return lone
 
 
-def _face(n: np.ndarray) -> int:
-    """The signed axis a normal points along most (+1..+d, -1..-d; 0 for none)."""
-    if not np.all(np.isfinite(n)) or float(np.abs(n).max(initial=0.0)) == 0.0:
-        return 0
-    k = int(np.argmax(np.abs(n)))
-    return (k + 1) * (1 if n[k] > 0 else -1)
+def _faces(n: np.ndarray) -> np.ndarray:
+    """(k,) int64: the signed axis each normal (row of ``n``) points along most (+1..+d,
+    -1..-d; 0 for none)."""
+    n = np.asarray(n, dtype=np.float64).reshape(len(n), -1)
+    k = np.argmax(np.abs(n), axis=1) if n.shape[1] else np.zeros(len(n), dtype=np.int64)
+    lead = n[np.arange(len(n)), k] if n.shape[1] else np.zeros(len(n))
+    out = (k + 1) * np.where(lead > 0, 1, -1)
+    none = ~np.all(np.isfinite(n), axis=1) | (np.abs(lead) == 0.0)
+    return np.where(none, 0, out).astype(np.int64)
 
 
 def _bursts(
@@ -469,18 +529,21 @@ def _swept(
     if r <= 0:
         return out
     excl = int(p.sweep_exclude_s * 1e9)
-    for g in range(G):
-        if not contacts[g]:
-            continue
-        lo, hi = t_span[g][0] - excl, t_span[g][1] + excl
-        for c in contacts[g]:
-            for j in tree.query_ball_point(c, math.hypot(r, max(h, 0.0))):
-                if lo <= free_t[j] <= hi:
-                    continue
-                dx = free_pts[j] - c
-                if math.hypot(dx[0], dx[1]) < r and abs(dx[2]) < h:
-                    out[g] = True
-                    break
-            if out[g]:
-                break
+    sizes = [len(cs) for cs in contacts]
+    if not sum(sizes):
+        return out
+    pts = np.concatenate([cs for cs in contacts if len(cs)])
+    owner = np.repeat(np.arange(G), sizes)
+    near = tree.query_ball_point(pts, math.hypot(r, max(h, 0.0)))
+    count = np.fromiter((len(j) for j in near), np.int64, len(near))
+    if not count.sum():
+        return out
+    i = np.repeat(np.arange(len(near)), count)  # (contact, free sample) pairs in reach
+    j = np.fromiter((k for js in near for k in js), np.int64, int(count.sum()))
+    lo = np.array([s[0] for s in t_span], dtype=np.int64)[owner[i]] - excl
+    hi = np.array([s[1] for s in t_span], dtype=np.int64)[owner[i]] + excl
+    dx = free_pts[j] - pts[i]
+    inside = (np.hypot(dx[:, 0], dx[:, 1]) < r) & (np.abs(dx[:, 2]) < h)
+    away = (free_t[j] < lo) | (free_t[j] > hi)  # a sample away from the event
+    out[owner[i[inside & away]]] = True
     return out

@@ -248,6 +248,29 @@ def test_training_set_groups_bursts_priors_and_the_swept_volume():
     assert ts.groups.extra_llr[2] == policy.sweep_llr
 
 
+def test_rows_come_in_order_one_per_group_voxel_and_loose_contacts_group_into_runs():
+    """Free rows first (the first sample of each free voxel, by id), then each group's
+    voxels (groups in the order of their first observation, one row per voxel and label at
+    its samples' mean); contacts without an event form runs split by ``event_gap_s``."""
+    policy = TrainingPolicy(contact_voxel_m=0.05, free_voxel_m=0.1, event_gap_s=0.2)
+    o = [
+        obs(9, 0.3, [0.0, 0.51, 1.0], 0, -1), obs(3, 0.0, [0.0, 0.21, 1.0], 0, 7),
+        obs(4, 0.0, [0.0, 0.22, 1.0], 0, 7), obs(5, 0.0, [-0.1, 0.21, 1.0], -1, 7),
+        obs(8, 0.2, [0.0, 0.50, 1.0], 0, -1), obs(10, 0.9, [0.0, 0.80, 1.0], 0, -1),
+        obs(1, 5.0, [1.0, 0.0, 1.0], 1, -1), obs(2, 5.1, [1.03, 0.0, 1.0], 1, -1),
+        obs(6, 6.0, [2.0, 0.0, 1.0], 1, -1),
+    ]  # fmt: skip
+    ts = build_training_set(o, policy)
+    assert [m.tolist() for m in ts.row_members] == [[1], [6], [3, 4], [5], [8, 9], [10]]
+    assert list(ts.groups.row_group) == [-1, -1, 0, 0, 1, 2]
+    np.testing.assert_allclose(ts.X[2], [0.0, 0.215, 1.0])
+    assert list(ts.y) == [1.0, 1.0, 0.0, policy.inside_value, 0.0, 0.0]
+    assert list(ts.event_ids) == [7, -1, -1]  # 8 and 9 0.1 s apart: one run; 10 0.6 s later
+    assert ts.keys == (("e", 7), ("o", 8), ("o", 10))
+    assert [g.tolist() for g in ts.group_ids] == [[3, 4, 5], [8, 9], [10]]
+    assert list(ts.t_end_ns) == [0, int(0.3e9), int(0.9e9)]
+
+
 def test_settled_events_are_pooled_with_their_summed_precision():
     """Two settled events in one 0.1 m voxel become one trusted row (per label) at their
     precision-weighted mean with the summed precision; an unsettled one keeps its group."""
