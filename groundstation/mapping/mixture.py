@@ -242,6 +242,45 @@ def _log_normal(e: float, var: float) -> float:
     return -0.5 * (e * e / var + math.log(var) + LOG_2PI)
 
 
+def _checked(X, y, noise_var, groups: Groups, start, directions) -> tuple:
+    """Validated fit inputs: (X, y, noise_var, directions, clipped priors, responsibilities)."""
+    X = np.asarray(X, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    s2 = np.asarray(noise_var, dtype=np.float64)
+    n = X.shape[0]
+    if X.ndim != 2 or y.shape != (n,) or s2.shape != (n,) or groups.row_group.shape != (n,):
+        raise InputDataError(f"fit: X (n, d), y, noise_var and row groups must agree, n = {n}")
+    if n < 2 or not (np.isfinite(X).all() and np.isfinite(y).all()):
+        raise InputDataError("fit: need at least 2 finite rows")
+    if not (s2 > 0).all():
+        raise InputDataError("fit: noise variances must be > 0")
+    prior = np.clip(groups.prior_false, _PRIOR_CLIP, 1 - _PRIOR_CLIP)
+    r = prior.copy() if start is None else np.clip(np.asarray(start, float), 0.0, 1.0)
+    if r.shape != prior.shape:
+        raise InputDataError("fit: start must have one entry per group")
+    V = np.zeros_like(X) if directions is None else np.asarray(directions, dtype=np.float64)
+    if V.shape != X.shape:
+        raise InputDataError("fit: directions must have the shape of X")
+    return X, y, s2, V, prior, r
+
+
+def kernel_blocks(X: np.ndarray, max_rows: int) -> list[np.ndarray]:
+    """Rows of ``X`` (n, d) cut into spatial blocks of at most ``max_rows`` (all of them in one
+    block when ``max_rows`` is 0 or at least n): each block is halved at the median of its
+    longest side until small enough, so blocks stay compact (about cubes) and even in size."""
+    X = np.asarray(X, dtype=np.float64)
+    todo, out = [np.arange(X.shape[0])], []
+    while todo:
+        b = todo.pop()
+        if max_rows <= 0 or b.size <= max_rows:
+            out.append(b)
+            continue
+        axis = int(np.argmax(np.ptp(X[b], axis=0)))
+        order = b[np.argsort(X[b, axis], kind="stable")]
+        todo += [order[order.size // 2 :], order[: order.size // 2]]
+    return [np.sort(b) for b in out]
+
+
 class EventMixtureGPIS:
     """GP implicit surface with one true/false latent per contact event (module docstring).
 
@@ -262,6 +301,13 @@ class EventMixtureGPIS:
         Convergence: largest change of a responsibility.
     kernel_iter : int
         L-BFGS-B iterations of a kernel step.
+    kernel_block_rows : int
+        A kernel step on more value rows than this maximises the sum of the evidences of
+        spatial blocks of at most this many rows (:func:`kernel_blocks`) instead of the evidence
+        of all of them (0: always all). Each evaluation factorises its rows in full (the
+        gradient needs ``P``), so its cost grows with their cube; blocks many length scales wide
+        lose only the correlations across their faces (the product-of-experts training of
+        Deisenroth & Ng, "Distributed Gaussian Processes", ICML 2015).
     flag_inside : bool
         Whether a group that the rest of the data places inside the structure (mean residual
         ``e_g > 0``: its labels lie above the prediction) may gain evidence for 'false'. Off,
@@ -282,6 +328,7 @@ class EventMixtureGPIS:
         max_iter: int = 20,
         tol: float = 1e-3,
         kernel_iter: int = 15,
+        kernel_block_rows: int = 0,
         flag_inside: bool = False,
         chunk_mb: float = 64.0,
     ) -> None:
@@ -295,6 +342,7 @@ class EventMixtureGPIS:
         self.max_iter = int(max_iter)
         self.tol = float(tol)
         self.kernel_iter = int(kernel_iter)
+        self.kernel_block_rows = int(kernel_block_rows)
         self.flag_inside = bool(flag_inside)
         self.chunk_mb = float(chunk_mb)
         self.fit_: MixtureFit | None = None
@@ -333,28 +381,11 @@ class EventMixtureGPIS:
         -------
         self
         """
-        X = np.asarray(X, dtype=np.float64)
-        y = np.asarray(y, dtype=np.float64)
-        s2 = np.asarray(noise_var, dtype=np.float64)
+        X, y, s2, V, prior, r = _checked(X, y, noise_var, groups, start, directions)
         n = X.shape[0]
-        if X.ndim != 2 or y.shape != (n,) or s2.shape != (n,) or groups.row_group.shape != (n,):
-            raise InputDataError(f"fit: X (n, d), y, noise_var and row groups must agree, n = {n}")
-        if n < 2 or not (np.isfinite(X).all() and np.isfinite(y).all()):
-            raise InputDataError("fit: need at least 2 finite rows")
-        if not (s2 > 0).all():
-            raise InputDataError("fit: noise variances must be > 0")
-        prior = np.clip(groups.prior_false, _PRIOR_CLIP, 1 - _PRIOR_CLIP)
-        r = prior.copy() if start is None else np.clip(np.asarray(start, float), 0.0, 1.0)
-        if r.shape != prior.shape:
-            raise InputDataError("fit: start must have one entry per group")
         ell, sf2 = self.bounds.clip(*(theta or (self.lengthscale, self.signal_var)))
-        V = np.zeros_like(X) if directions is None else np.asarray(directions, dtype=np.float64)
-        if V.shape != X.shape:
-            raise InputDataError("fit: directions must have the shape of X")
         is_val = np.einsum("ij,ij->i", V, V) == 0.0
         center = X.mean(axis=0)
-        # squared distances only for the kernel step (a tile refit with a fixed kernel skips it)
-        D = sq_dists(X[is_val], X[is_val], center=center) if self.learn_kernel else None
         rg = groups.row_group
         in_group = rg >= 0
         bursts = self._burst_rows(groups)
@@ -374,7 +405,9 @@ class EventMixtureGPIS:
             w = self._precisions(s2, rg, in_group, r)
             if it == 1:  # the kernel is fixed after the first iteration
                 if self.learn_kernel:
-                    ell, sf2 = self._kernel_step(D, w[is_val], resid[is_val], ell, sf2)
+                    ell, sf2 = self._kernel_step(
+                        X[is_val], center, w[is_val], resid[is_val], ell, sf2
+                    )
                 K = se_mixed(X, V, X, V, ell, sf2, center=center)
             fac = factorize_blocks(K, w, resid, self.prior_mean, burst_rows)
             llr = self._leave_burst_out(fac, w, s2, rg, bursts, spans, r.size, is_val)
@@ -422,6 +455,26 @@ class EventMixtureGPIS:
             reasons=() if converged else (("decisions_cycle",) if cycled else ("not_converged",)),
         )
         return self
+
+    def learn_theta(
+        self,
+        X: np.ndarray,
+        y: np.ndarray,
+        noise_var: np.ndarray,
+        groups: Groups,
+        start: np.ndarray | None = None,
+        directions: np.ndarray | None = None,
+    ) -> tuple[float, float]:
+        """The kernel hyperparameters ``(lengthscale, signal_var)`` that :meth:`fit` with
+        ``learn_kernel`` would learn from these inputs: its first iteration's kernel step, without
+        the EM that follows (the kernel is fixed after it), for a caller that wants only them."""
+        X, y, s2, V, _, r = _checked(X, y, noise_var, groups, start, directions)
+        is_val = np.einsum("ij,ij->i", V, V) == 0.0
+        rg = groups.row_group
+        w = self._precisions(s2, rg, rg >= 0, r)
+        ell, sf2 = self.bounds.clip(self.lengthscale, self.signal_var)
+        resid = y[is_val] - self.prior_mean
+        return self._kernel_step(X[is_val], X.mean(axis=0), w[is_val], resid, ell, sf2)
 
     def _precisions(self, s2, rg, in_group, r) -> np.ndarray:
         """Row precisions for the GP: a group decided false (``r > 1/2``) counts with the
@@ -483,16 +536,24 @@ class EventMixtureGPIS:
                     llr[g] = min(llr[g], 0.0)  # placed inside by the rest: not a gust's point
         return llr
 
-    def _kernel_step(self, D, w, resid, ell, sf2) -> tuple[float, float]:
-        """Maximise log N(y | mu0, K + W^-1) over (log l, log sf2) within the bounds."""
+    def _kernel_step(self, Xv, center, w, resid, ell, sf2) -> tuple[float, float]:
+        """Maximise log N(y | mu0, K + W^-1) over (log l, log sf2) within the bounds, on the
+        value rows ``Xv``: summed over :func:`kernel_blocks` when there are more than
+        ``kernel_block_rows`` of them."""
         lo = np.log([self.bounds.lengthscale[0], self.bounds.signal_var[0]])
         hi = np.log([self.bounds.lengthscale[1], self.bounds.signal_var[1]])
+        blocks = kernel_blocks(Xv, self.kernel_block_rows)
+        parts = [(b, sq_dists(Xv[b], Xv[b], center=center)) for b in blocks]
 
         def fun(th: np.ndarray):
             e, s = float(np.exp(th[0])), float(np.exp(th[1]))
-            K = se_from_sq_dists(D.copy(), e, s)
-            fac = factorize(K, D, w, resid, self.prior_mean, e)
-            return -fac.log_marginal(w), -fac.grad
+            value, grad = 0.0, np.zeros(2)
+            for b, D in parts:
+                K = se_from_sq_dists(D.copy(), e, s)
+                fac = factorize(K, D, w[b], resid[b], self.prior_mean, e)
+                value -= fac.log_marginal(w[b])
+                grad -= fac.grad
+            return value, grad
 
         x0 = np.clip(np.log([ell, sf2]), lo, hi)
         try:

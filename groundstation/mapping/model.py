@@ -224,6 +224,7 @@ class SurfaceModel:
             learn_kernel=learn,
             max_iter=ms.refit_max_iter if warm else ms.mixture_max_iter,
             tol=ms.flag_tol,
+            kernel_block_rows=ms.kernel_block_rows,
             flag_inside=ms.flag_inside,
             chunk_mb=self.surface.chunk_mb,
         )
@@ -279,9 +280,9 @@ class SurfaceModel:
                 pre = self._estimator(False, warm).fit(X, y, s2, groups, start=st, directions=V)
                 st = pre.posterior_false_
                 learn = self._identified(st)
-            if learn:
-                est = self._estimator(True, warm).fit(X, y, s2, groups, start=st, directions=V)
-                self._theta = (est.lengthscale_, est.signal_var_)
+            if learn:  # only the kernel: every tile refits with it below
+                est = self._estimator(True, warm)
+                self._theta = est.learn_theta(X, y, s2, groups, start=st, directions=V)
                 self._tiles = {}  # a new kernel: every tile refits and re-meshes
         layout = self._fitting_layout()
         # every tile the surface can reach, also one with no shape row in its own core

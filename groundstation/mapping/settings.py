@@ -104,6 +104,14 @@ class MappingSettings:
         a halo of three length scales, and only tiles whose data changed are refitted.
     learn_tile_m : float
         Edge of the tile the kernel is learnt on (the one holding the most trusted surface).
+    kernel_block_rows : int
+        A kernel step on more rows than this sums the evidence of spatial blocks of at most
+        this many rows (``mixture.kernel_blocks``; 0: never). Each L-BFGS evaluation factorises
+        its rows and inverts the factor, so its cost grows with their cube: on the dense
+        40-minute session (sliding strokes, 0.1 m pooled voxels) the learning tile held up to
+        4,700 rows and a kernel step took 10.6 s. The learning tiles of ordinary flights hold
+        far fewer (at most ~600 on the tuning flights, 472 on the 40-minute survey, 1,043 on the
+        paper-like 3D set): there the kernel step is unchanged.
     tangent_slope_noise : float
         Noise (label units per metre) of each event's two tangent-plane rows: the potential's
         derivative along the contact's tangents is 0, so a surface goes on flat around a touch
@@ -302,6 +310,7 @@ class MappingSettings:
     tangent_slope_noise: float = 1.0
     tile_m: float = 1.0
     learn_tile_m: float = 2.0
+    kernel_block_rows: int = 1500
     settle_p_false: float = 0.05
     settle_after_s: float = 60.0
     settle_evidence_nats: float = 0.7
@@ -436,6 +445,7 @@ class MappingSettings:
             ("refit_max_iter", 1),
             ("mixture_max_iter", 1),
             ("learn_min_events", 1),
+            ("kernel_block_rows", 0),
             ("burst_events_min", 2),
             ("blas_threads", 0),
             ("merge_min_raw", 0),
