@@ -25,7 +25,8 @@ false contacts as without is robust; one whose clean control is no better is smo
 
 **The 40-minute session** (``scenes3d.session40``): the legacy and the default mapper refitted
 every ``refit_every`` seconds of the growing stream (warm, as live): wall time of each refit
-(fit + mesh) against the raw observations so far.
+(fit + mesh) against the raw observations so far, and the metrics above of the map each ends
+the session with (a fast refit of a wrong map is no result).
 
 Outputs in ``--out``: ``pareto.md``, ``pareto.png`` (total time against Chamfer near the touched
 surface, full set and clean control), ``refit_vs_session.png`` and ``results.json``.
@@ -152,7 +153,8 @@ def surface_metrics(mesh: SurfaceMesh | None, data: scenes3d.ObservationSet3D) -
 
 def flag_metrics(flagged_events: set[int], data: scenes3d.ObservationSet3D) -> dict:
     """Shares of cluster gusts, isolated gusts and touches whose event is flagged."""
-    ev, kind, clu = data.event, data.kind, data.cluster
+    ev, kind = data.event, data.kind
+    clu = np.zeros(kind.shape, dtype=bool) if data.cluster is None else data.cluster
 
     def share(sel: np.ndarray) -> float | None:
         evs = set(ev[sel].tolist())
@@ -301,6 +303,10 @@ def refit_session(session: scenes3d.ObservationSet3D, every_s: float, bar: Any) 
                 "covered": bool(t >= session.covered_s),
             })  # fmt: skip
             bar.update()
+        # the map the session ends with, scored like the 3D set's (its clean control is not run)
+        out[-1]["final"] = surface_metrics(fit.mesh, session) | flag_metrics(
+            set(fit.flagged_events), session
+        )
     return out
 
 
@@ -316,6 +322,7 @@ def refit_summary(refits: list[dict]) -> dict:
             "p95_s": _f(np.percentile(t, 95)) if t.size else None,
             "max_s": _f(t.max()) if t.size else None,
             "covered_median_s": _f(np.median(tc)) if tc.size else None,
+            "final": next((r["final"] for r in refits if r["method"] == m and "final" in r), None),
         }
     return out
 
@@ -370,6 +377,19 @@ def render(rows: list[dict], refits: dict, note: str) -> str:
             lines.append(
                 f"| {m} | {s['refits']} | {_g(s['median_s'], '.2f')} | {_g(s['p95_s'], '.2f')} | "
                 f"{_g(s['max_s'], '.2f')} | {_g(s['covered_median_s'], '.2f')} |"
+            )
+        lines += ["", "The map each ends the session with (metrics as for the 3D set):", "",
+                  "| method | Chamfer near (mm) | missing | phantom share | phantom max patch m^2 "
+                  "| gusts flagged | touches flagged |",
+                  "|---|---|---|---|---|---|---|"]  # fmt: skip
+        for m, s in sorted(refits.items()):
+            f = s.get("final") or {}
+            ch = f.get("chamfer_near")
+            lines.append(
+                f"| {m} | {_g(None if ch is None else 1e3 * ch, '.1f')} | "
+                f"{_g(f.get('missing'), '.3f')} | {_g(f.get('phantom_share'), '.3f')} | "
+                f"{_g(f.get('phantom_max_patch_m2'), '.2f')} | "
+                f"{_g(f.get('isolated_flagged'), '.2f')} | {_g(f.get('touch_flagged'), '.3f')} |"
             )
     return "\n".join(lines) + "\n"
 

@@ -123,6 +123,12 @@ def test_refit_session_on_a_short_session():
         assert rs[0]["n_raw"] < rs[1]["n_raw"] == len(obs.y)
         for r in rs:
             assert math.isfinite(r["total_s"]) and r["total_s"] >= 0
+        final = rs[-1]["final"]  # the session's last map is scored
+        assert "final" not in rs[0] and 0.0 <= final["missing"] <= 1.0
+        assert final["chamfer_near"] is not None and final["phantom_max_patch_m2"] >= 0.0
+    summary = pareto.refit_summary(refits)
+    assert summary[pareto.DEFAULT]["final"] == by[pareto.DEFAULT][-1]["final"]
+    assert "The map each ends the session with" in pareto.render([], summary, "")
 
 
 def test_cli_refuses_unknown_scenes_and_methods(tmp_path):
