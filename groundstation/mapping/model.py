@@ -298,8 +298,8 @@ class SurfaceModel:
             sig = signature(X, y, s2, V, groups.row_group, np.round(groups.prior_false, 4),
                             groups.burst, groups.extra_llr, decided[gidx])  # fmt: skip
             old = self._tiles.get(key)
-            if old is not None and old.signature == sig:
-                fitted[key] = old
+            if old is not None and old.signature == sig:  # same data; rows renumbered since
+                fitted[key] = dataclasses.replace(old, rows=rows, gidx=gidx)
                 continue
             est = self._estimator(False, warm).fit(X, y, s2, groups, start=st, directions=V)
             fitted[key] = _TileFit(key, rows, gidx, sig, est, None)

@@ -340,3 +340,29 @@ def test_a_face_across_tile_boundaries_is_one_welded_surface():
     assert len(set(lab[: len(ff)].tolist())) == 1  # one piece across both boundaries
     _, counts = np.unique(np.round(v / 1e-5).astype(np.int64), axis=0, return_counts=True)
     assert counts.max() == 1  # no vertex twice
+
+
+def test_a_mesh_after_two_fits_is_the_mesh_of_a_mesh_after_each():
+    # free space flown far away between two fits comes first in the rows (rows by id), so it
+    # renumbers the rows of every tile although their data did not change. Those tiles are
+    # kept, and must be meshed with their rows as numbered now (with the first fit's: the
+    # wrong anchors, or an IndexError)
+    obs = box_flight(seed=5)
+    far = [
+        Observation(10_000 + k, int((500.0 + k) * S), np.array([9.0, 0.1 * k, 0.0]), 1.0,
+                    np.zeros(3), -1, 0.0)
+        for k in range(40)  # 40 rows: too few to relearn the kernel (a new kernel refits all)
+    ]  # fmt: skip
+    unsettled = MappingSettings(settle_p_false=0.0)  # no pooling: only the far rows change
+    a, b = SurfaceModel(unsettled), SurfaceModel(unsettled)
+    a.fit(obs)
+    a.fit(obs + far)
+    b.fit(obs)
+    b.mesh()
+    b.fit(obs + far)
+    assert b.timings_["tiles_refit"] == 0  # every tile was kept
+    for tile in a._tiles.values():  # and indexes its own rows in today's numbering
+        np.testing.assert_array_equal(a.training_set_.X[tile.rows], tile.est.X_train_)
+    ma, mb = a.mesh(), b.mesh()
+    np.testing.assert_array_equal(ma.faces, mb.faces)
+    np.testing.assert_allclose(ma.vertices, mb.vertices)
