@@ -19,8 +19,9 @@ sequence of named policy steps:
 
 and :meth:`SurfaceModel.mesh` evaluates the field in a narrow band around its zero set on a grid
 over the *data's* region (:meth:`~SurfaceModel.region`: every observation plus a margin, clipped
-only by a configured region, which is then reported), runs marching cubes and keeps the faces
-whose predictive std is at most ``max_std_fraction`` of the prior std.
+only by a configured region, which is then reported), runs marching cubes, keeps the faces
+whose predictive std is at most ``max_std_fraction`` of the prior std and drops the cavities
+drawn inside structures touched all round (``mapping/cavities.py``).
 
 Pure: no clock reads except the ``timings_`` it reports, no files, no threads.
 """
@@ -38,6 +39,7 @@ import numpy as np
 from groundstation.contact.detector import Observation
 from groundstation.contact.vehicle import VehicleSettings
 from groundstation.errors import InputDataError, NotFittedError
+from groundstation.mapping.cavities import cavity_faces
 from groundstation.mapping.field import narrow_band_field
 from groundstation.mapping.grid import Grid
 from groundstation.mapping.mixture import EventMixtureGPIS, Groups, KernelBounds, MixtureFit
@@ -54,6 +56,9 @@ from groundstation.mapping.training import TrainingPolicy, TrainingSet, build_tr
 #: The surface is drawn up to this many length scales from an anchor
 #: (:meth:`SurfaceModel.reach_m`).
 REACH_LENGTHSCALES = 2.5
+#: A face deeper than this many internal-point depths behind its nearest touch, facing away
+#: from it, may be a cavity's (``mapping/cavities.py``); internal points lie one depth behind.
+CAVITY_DEPTH_INTERNALS = 1.5
 #: The kernel's learning tile holds at least this halo, metres: at l = 0.1 m a halo of 3 l
 #: left too little surface there to learn it from (the bundled wall survey's final map became
 #: worse than its live one, 853585c).
@@ -627,8 +632,23 @@ class SurfaceModel:
                     tile.mesh_key = s
         parts = [t.mesh for t in self._tiles.values() if not t.mesh.is_empty]
         mesh = weld_lattice(_concatenate(parts), s)  # neighbours share their boundary plane
+        if self.surface.drop_cavities and not mesh.is_empty:
+            mesh = _faces_subset(mesh, ~self._cavities(mesh))
         self.timings_.update(mesh_s=time.perf_counter() - t0)
         return mesh
+
+    def _cavities(self, mesh: SurfaceMesh) -> np.ndarray:
+        """Faces of ``mesh`` in a cavity (``mapping/cavities.py``), seen from the trusted
+        contacts (their rows, pooled ones included, and normals) and the free-space rows."""
+        ts = self.training_set_
+        g = ts.groups.row_group
+        trusted = np.ones(len(ts), dtype=bool)
+        trusted[g >= 0] = self.posterior_false_[g[g >= 0]] <= 0.5
+        touch = trusted & (ts.y == 0.0) & (np.einsum("ij,ij->i", ts.normals, ts.normals) > 0.0)
+        return cavity_faces(
+            mesh, ts.X[touch], ts.normals[touch], ts.X[ts.y > 0.0],
+            depth_m=CAVITY_DEPTH_INTERNALS * self.policy.internal_depth_m,
+        )  # fmt: skip
 
 
 @dataclasses.dataclass

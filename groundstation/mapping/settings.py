@@ -493,6 +493,12 @@ class SurfaceSettings:
         (std / |gradient|) instead was tried at 0.10 / 0.15 / 0.20 m: 0.360 / 0.280 / 0.235
         missing against 0.116 / 0.198 / 0.233 m², a worse trade than this one. The legacy
         engine was measured at 0.7 (``bench pareto``'s legacy settings pin it).
+    drop_cavities : bool
+        Drop the inward-facing shells the field draws deep inside a structure touched all
+        round (``mapping/cavities.py``; mixture engine). On the dense 40-minute session
+        (l = 0.1 m) the inside of the box was the map's largest phantom patch, 2.8 m² at 30
+        min (0.23 m² without it); on the tuning flights and the paper-like 3D set
+        (l = 0.23-0.3 m) nothing is a cavity.
     """
 
     region_min: tuple[float, ...] = ()
@@ -504,6 +510,7 @@ class SurfaceSettings:
     band_voxels: float = 2.0
     region_margin: float = 0.5
     max_std_fraction: float = 0.6
+    drop_cavities: bool = True
 
     def __post_init__(self) -> None:
         if len(self.region_min) != len(self.region_max) or len(self.region_min) not in (0, 2, 3):

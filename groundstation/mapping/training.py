@@ -117,6 +117,9 @@ class TrainingSet:
     y : (n,) float64
         Potential values (0 contact, ``inside_value`` internal, +1 free), or 0 for a tangent.
     noise_var : (n,) float64
+    normals : (n, d) float64
+        Mean outward normal of the observations a contact or internal row stands for (not unit
+        length); zero for free-space, tangent and plane rows.
     row_members : tuple of (k,) int64 arrays
         Observation ids each row stands for (a group's samples in one voxel share a row;
         empty for tangent-plane rows).
@@ -141,6 +144,7 @@ class TrainingSet:
     directions: np.ndarray
     y: np.ndarray
     noise_var: np.ndarray
+    normals: np.ndarray
     row_members: tuple[np.ndarray, ...]
     groups: Groups
     event_ids: np.ndarray
@@ -253,6 +257,7 @@ def build_training_set(
     rows_X = [col.X[free_rows]]
     rows_y = [np.ones(free_rows.size)]
     rows_s2 = [np.full(free_rows.size, p.free_noise**2)]
+    rows_n = [np.zeros((free_rows.size, d))]
     rows_m: list[np.ndarray] = [col.ids[i : i + 1] for i in free_rows]
     rows_g = [np.full(free_rows.size, -1, dtype=np.int64)]
 
@@ -292,6 +297,7 @@ def build_training_set(
     s2 = p.contact_noise**2 + (slope * np.where(np.isfinite(sig), sig, 0.0)) ** 2
     cell_x = _sums(cell, col.X[shape], C) / n_cell[:, None]
     cell_s2 = _sums(cell, s2, C) / n_cell
+    cell_n = _sums(cell, normals, C) / n_cell[:, None]
     cell_g = g_of[cfirst[corder]]
     cell_lab = lab[cfirst[corder]]
     cell_ids = _split(col.ids[shape], cell, C)
@@ -299,13 +305,14 @@ def build_training_set(
     rows_X.append(cell_x[kept])
     rows_y.append(np.where(cell_lab[kept] == 0, 0.0, p.inside_value))
     rows_s2.append(cell_s2[kept])
+    rows_n.append(cell_n[kept])
     rows_m.extend(cell_ids[c] for c in kept)
     rows_g.append(cell_g[kept])
 
     # settled groups: their voxels pooled per settled voxel and face, precision-weighted
     pooled = np.flatnonzero(is_settled[cell_g])
     if pooled.size:
-        face = _faces(_sums(cell, normals, C)[pooled] / n_cell[pooled, None])
+        face = _faces(cell_n[pooled])
         pkey = np.column_stack([
             cell_lab[pooled], face,
             np.floor(cell_x[pooled] / p.settled_voxel_m).astype(np.int64),
@@ -319,6 +326,7 @@ def build_training_set(
         plab[pinv] = cell_lab[pooled]
         rows_y.append(np.where(plab == 0, 0.0, p.inside_value))
         rows_s2.append(1.0 / w)
+        rows_n.append(_sums(pinv, cell_n[pooled], P) / np.bincount(pinv, minlength=P)[:, None])
         members = _split(np.arange(pooled.size), pinv, P)
         rows_m.extend(np.sort(np.concatenate([cell_ids[pooled[k]] for k in m])) for m in members)
         rows_g.append(np.full(P, -1, dtype=np.int64))
@@ -356,6 +364,7 @@ def build_training_set(
             rows_X.append(np.array(extra))
             rows_y.append(np.zeros(len(extra)))
             rows_s2.append(np.array(s2_extra))
+            rows_n.append(np.zeros((len(extra), d)))
             rows_m.extend([none] * len(extra))
             rows_g.append(np.full(len(extra), owner, dtype=np.int64))
 
@@ -374,6 +383,7 @@ def build_training_set(
         directions=np.concatenate(dirs).reshape(-1, d),
         y=np.concatenate(rows_y).astype(np.float64),
         noise_var=np.concatenate(rows_s2).astype(np.float64),
+        normals=np.concatenate(rows_n).reshape(-1, d),
         row_members=tuple(np.asarray(m, dtype=np.int64) for m in rows_m),
         groups=Groups(
             row_group=np.concatenate(rows_g).astype(np.int64),

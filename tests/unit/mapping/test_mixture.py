@@ -409,3 +409,25 @@ def test_a_kernel_learnt_on_blocks_many_length_scales_wide_is_the_kernel_learnt_
     assert 0.1 < ell < 0.5  # identified, not at a bound
     assert ell_b == pytest.approx(ell, rel=0.1)
     assert sf2_b == pytest.approx(sf2, rel=0.15)
+
+
+def test_contact_and_internal_rows_carry_their_mean_normal_pooled_or_not():
+    policy = TrainingPolicy(settled_voxel_m=0.1, contact_voxel_m=0.05)
+    n1, n2 = np.array([1.0, 0.0, 0.0]), np.array([0.8, 0.6, 0.0])
+
+    def ob(i, x, label, event, n):
+        return Observation(i, int(i * 1e9), np.asarray(x, float), float(label),
+                           n if label <= 0 else np.zeros(3), event, 0.0, sigma_m=0.01)  # fmt: skip
+
+    o = [ob(0, [0, 0.01, 1.01], 0, 0, n1), ob(1, [0, 0.02, 1.01], 0, 0, n2),
+         ob(2, [0, 0.07, 1.03], 0, 1, n2), ob(3, [1.0, 0, 1], 1, -1, None)]  # fmt: skip
+    plain = build_training_set(o, policy)
+    contact = (plain.y == 0.0) & (plain.groups.row_group >= 0)
+    np.testing.assert_allclose(plain.normals[contact], [(n1 + n2) / 2, n2])
+    assert not plain.normals[plain.y > 0].any()  # free space has none
+    value = np.einsum("ij,ij->i", plain.directions, plain.directions) == 0.0
+    assert not plain.normals[~value].any()  # nor the tangent rows
+    pooled = build_training_set(o, policy, frozenset(plain.keys))
+    value = np.einsum("ij,ij->i", pooled.directions, pooled.directions) == 0.0
+    row = (pooled.y == 0.0) & (pooled.groups.row_group == -1) & value
+    np.testing.assert_allclose(pooled.normals[row], [((n1 + n2) / 2 + n2) / 2])
