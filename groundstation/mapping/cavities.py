@@ -19,7 +19,8 @@ A face belongs to such a cavity when
 The back side of a thin wall passes 1 but not 2: its outward look goes into open space. Faces
 that pass 1 are grouped into connected pieces, and a piece whose faces mostly pass 2 is a cavity
 (one ray that slips between sparse touches does not decide a piece). Rays are cast from at most
-``MAX_RAYS`` faces (evenly drawn, seeded), stepping ``radius_m / 2`` for ``ray_m``.
+``RAYS_PER_PIECE`` faces of each piece (drawn at random, seeded), stepping ``radius_m`` for
+``ray_m``: on an ordinary flight's 16,000-face map the check costs about 10 ms.
 """
 
 from __future__ import annotations
@@ -31,8 +32,8 @@ from scipy.spatial import cKDTree
 
 from groundstation.mapping.surface import SurfaceMesh
 
-#: Rays cast at most (the vote per piece needs a sample of its faces, not all of them).
-MAX_RAYS = 3000
+#: Rays cast at most per piece (its vote needs a sample of its faces, not all of them).
+RAYS_PER_PIECE = 64
 #: A touch met from behind counts when its normal is within ~73 deg of the look.
 ALONG_COS = 0.3
 
@@ -68,7 +69,7 @@ def cavity_faces(
     ray_m : float
         How far a face looks out.
     seed : int
-        Seed of the faces drawn when more than ``MAX_RAYS`` are candidates.
+        Seed of the faces drawn when a piece has more than ``RAYS_PER_PIECE``.
     """
     n_faces = int(mesh.faces.shape[0])
     out = np.zeros(n_faces, dtype=bool)
@@ -78,10 +79,12 @@ def cavity_faces(
     C = np.asarray(contacts, dtype=np.float64).reshape(-1, 3)
     N = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     N = N / np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-12)
-    cent = V[F].mean(axis=1)
-    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    v0, v1, v2 = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    cent = (v0 + v1 + v2) / 3.0
+    fn = np.cross(v1 - v0, v2 - v0)
     fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-12)
-    fn *= np.where(np.einsum("ij,ij->i", fn, mesh.normals[F].mean(axis=1)) < 0, -1.0, 1.0)[:, None]
+    vn = mesh.normals[F[:, 0]] + mesh.normals[F[:, 1]] + mesh.normals[F[:, 2]]
+    fn *= np.where(np.einsum("ij,ij->i", fn, vn) < 0, -1.0, 1.0)[:, None]  # outwards
     touches = cKDTree(C)
     _, j = touches.query(cent)
     behind = np.einsum("ij,ij->i", C[j] - cent, N[j]) > depth_m
@@ -96,13 +99,12 @@ def cavity_faces(
         coo_matrix((np.ones(a.size), (a, b)), shape=(nv, nv)), directed=False
     )
     piece_of = piece[Fc[:, 0]]
-    if cand.size > MAX_RAYS:
-        look = np.sort(np.random.default_rng(seed).choice(cand.size, MAX_RAYS, replace=False))
-    else:
-        look = np.arange(cand.size)
+    shuffled = np.random.default_rng(seed).permutation(cand.size)
+    by_piece = shuffled[np.argsort(piece_of[shuffled], kind="stable")]
+    starts = np.searchsorted(piece_of[by_piece], piece_of[by_piece], side="left")
+    look = np.sort(by_piece[np.arange(by_piece.size) - starts < RAYS_PER_PIECE])
     f = cand[look]
-    step = radius_m / 2.0
-    s = step * np.arange(1, int(ray_m / step) + 1)
+    s = radius_m * np.arange(1, int(ray_m / radius_m) + 1)
     Q = (cent[f][:, None, :] + s[None, :, None] * fn[f][:, None, :]).reshape(-1, 3)
     K = s.size
     d_c, j_c = touches.query(Q, distance_upper_bound=radius_m)
