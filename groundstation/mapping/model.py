@@ -550,17 +550,21 @@ class SurfaceModel:
         """(k, d) contact, internal and plane-point rows of the events decided true: where
         surface can be."""
         ts = self.training_set_
-        g = ts.groups.row_group
-        trusted = np.ones(len(ts), dtype=bool)  # free space (y > 0) is dropped below
-        ok = g >= 0
-        trusted[ok] = self.posterior_false_[g[ok]] <= 0.5
         value = np.einsum("ij,ij->i", ts.directions, ts.directions) == 0.0
-        sel = trusted & value & (ts.y <= 0.0)
+        sel = self._trusted_rows() & value & (ts.y <= 0.0)  # free space (y > 0) is not
         if rows is not None:
             mask = np.zeros(len(ts), dtype=bool)
             mask[rows] = True
             sel &= mask
         return ts.X[sel]
+
+    def _trusted_rows(self) -> np.ndarray:
+        """(n,) bool: the rows of events decided true, and the rows of no event (free space,
+        the settled pool)."""
+        g = self.training_set_.groups.row_group
+        trusted = np.ones(g.size, dtype=bool)
+        trusted[g >= 0] = self.posterior_false_[g[g >= 0]] <= 0.5
+        return trusted
 
     def _clip(self) -> tuple[np.ndarray, np.ndarray]:
         """The configured region clip (infinite when none)."""
@@ -641,10 +645,8 @@ class SurfaceModel:
         """Faces of ``mesh`` in a cavity (``mapping/cavities.py``), seen from the trusted
         contacts (their rows, pooled ones included, and normals) and the free-space rows."""
         ts = self.training_set_
-        g = ts.groups.row_group
-        trusted = np.ones(len(ts), dtype=bool)
-        trusted[g >= 0] = self.posterior_false_[g[g >= 0]] <= 0.5
-        touch = trusted & (ts.y == 0.0) & (np.einsum("ij,ij->i", ts.normals, ts.normals) > 0.0)
+        facing = np.einsum("ij,ij->i", ts.normals, ts.normals) > 0.0  # contact rows, not slopes
+        touch = self._trusted_rows() & (ts.y == 0.0) & facing
         return cavity_faces(
             mesh, ts.X[touch], ts.normals[touch], ts.X[ts.y > 0.0],
             depth_m=CAVITY_DEPTH_INTERNALS * self.policy.internal_depth_m,
