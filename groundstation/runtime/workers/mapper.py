@@ -23,7 +23,11 @@ Two processes, so that the shell always answers:
 
 After each refit the shell publishes ``mesh`` (when the fit produced a new one), ``mapper.fit``
 (ids, u, flags, ``reliable``, ``reasons``, ``data_ns``, ``lag_s``) and ``status`` (state
-``fitting`` with the fit's running time, ``idle``, ``unreliable``).
+``fitting`` with the fit's running time, ``idle``, ``unreliable``). The child reports a fit as
+plain data (:func:`fit_message`: numbers, strings and numpy arrays), never as the mapping core's
+own objects: unpickling a ``FitResult`` made the shell import the whole mapping core (scipy,
+scikit-image) on the first fit, which on a loaded machine held that first mesh back 0.8-1.2 s
+after the fit had finished.
 
 Restart (``--recording PATH``): a restarted mapper first reads every observation the session's
 recording holds. From then on it repairs holes: when an observation arrives whose sequence
@@ -41,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import dataclasses
 import multiprocessing
 import os
 import signal
@@ -103,6 +108,59 @@ def load_recorded_observations(path: str) -> tuple[list[Observation], int]:
 # -- the fitting child -----------------------------------------------------------------------------
 
 
+@dataclasses.dataclass(frozen=True)
+class FitMessage:
+    """What the shell publishes of one refit (built from :func:`fit_message`'s plain data).
+
+    ``vertices``, ``triangles`` and ``vertex_std`` are None when the fit has no mesh to publish
+    (an unreliable fit keeps the last one shown; meshing off); ``vertex_std`` is zeros when the
+    mesh carries none."""
+
+    fit_index: int
+    data_ns: int
+    reliable: bool
+    reasons: tuple[str, ...]
+    fit_s: float
+    hyperparameters: dict
+    flagged_events: tuple[int, ...]
+    ids: np.ndarray
+    u: np.ndarray
+    flags: np.ndarray
+    vertices: np.ndarray | None = None
+    triangles: np.ndarray | None = None
+    vertex_std: np.ndarray | None = None
+
+    @classmethod
+    def from_plain(cls, plain: dict) -> FitMessage:
+        return cls(**plain)
+
+
+def fit_message(fit: FitResult) -> dict:
+    """The plain data (builtins and numpy arrays) of ``fit`` that the shell publishes."""
+    m = fit.mesh
+    mesh: dict[str, Any] = {}
+    if fit.reliable and m is not None:
+        std = m.std if m.std is not None else np.zeros(len(m.vertices))
+        mesh = {
+            "vertices": np.ascontiguousarray(m.vertices, dtype=np.float32),
+            "triangles": np.ascontiguousarray(m.faces, dtype=np.int32),
+            "vertex_std": np.ascontiguousarray(std, dtype=np.float32),
+        }
+    return {
+        "fit_index": int(fit.fit_index),
+        "data_ns": int(fit.data_ns),
+        "reliable": bool(fit.reliable),
+        "reasons": tuple(str(r) for r in fit.reasons),
+        "fit_s": float(fit.timings.get("total_s", 0.0)),
+        "hyperparameters": dict(fit.hyperparameters),
+        "flagged_events": tuple(int(e) for e in fit.flagged_events),
+        "ids": np.asarray(fit.ids, dtype=np.int64),
+        "u": np.asarray(fit.u, dtype=np.float64),
+        "flags": np.asarray(fit.flags),
+        **mesh,
+    }
+
+
 def _die_with(parent: int) -> None:
     try:
         ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)
@@ -138,7 +196,7 @@ def fit_loop(conn: Any, config_text: str, parent: int) -> None:
         mapper.add(batch)
         if mapper.due() or (final and mapper.pending and mapper.ready()):
             conn.send(("fitting", mapper.fit_index + 1, len(mapper)))
-            conn.send(("fit", mapper.refit()))
+            conn.send(("fit", fit_message(mapper.refit())))
         if final:
             conn.send(("finished", mapper.fit_index))
         conn.send(("idle", len(mapper), mapper.pending))
@@ -158,6 +216,8 @@ class FitChild:
         child_end.close()
         self.idle = False
         self.fitting_since: float | None = None
+        self.started = time.monotonic()
+        self.ready_s: float | None = None  # start to first "idle": interpreter, imports, config
 
     def alive(self) -> bool:
         return self.proc.is_alive()
@@ -205,7 +265,7 @@ class MapperProcess(Worker):
         self.bad = 0
         self.final_pending = False
         self.finished_seen = False
-        self.last_fit: FitResult | None = None
+        self.last_fit: FitMessage | None = None
         self.fits = 0
         self.child_restarts = 0
         self.restored = 0
@@ -338,6 +398,9 @@ class MapperProcess(Worker):
             kind = msg[0]
             if kind == "idle":
                 child.idle, child.fitting_since = True, None
+                if child.ready_s is None:
+                    child.ready_s = time.monotonic() - child.started
+                    self.log("info", f"fitting process ready in {child.ready_s:.1f} s")
                 if self.state == "fitting":
                     self.state = (
                         "idle"
@@ -347,7 +410,7 @@ class MapperProcess(Worker):
             elif kind == "fitting":
                 self.state, child.fitting_since = "fitting", time.monotonic()
             elif kind == "fit":
-                self.publish_fit(msg[1])
+                self.publish_fit(FitMessage.from_plain(msg[1]))
             elif kind == "finished" and not self.finished_seen:
                 self.finished_seen = True
                 self.log("info", f"{MAPPER_FINISHED}: fit {msg[1]}")
@@ -366,37 +429,32 @@ class MapperProcess(Worker):
                 self.final_pending = False
 
     # -- publishing ----------------------------------------------------------------------------
-    def publish_fit(self, fit: FitResult) -> None:
-        """``mesh`` (when new), ``mapper.fit`` and ``status`` for one refit."""
+    def publish_fit(self, fit: FitMessage) -> None:
+        """``mesh`` (when the fit has one), ``mapper.fit`` and ``status`` for one refit."""
         self.last_fit = fit
         self.fits += 1
         lag_s = max(0, (self.data_ns or fit.data_ns) - fit.data_ns) / 1e9
-        if fit.reliable and fit.mesh is not None:
-            m = fit.mesh
-            std = m.std if m.std is not None else np.zeros(len(m.vertices))
+        if fit.vertices is not None:
             self.pub.publish(
                 "mesh",
-                {"fit_index": int(fit.fit_index)},
-                {
-                    "vertices": np.ascontiguousarray(m.vertices, dtype=np.float32),
-                    "triangles": np.ascontiguousarray(m.faces, dtype=np.int32),
-                    "vertex_std": np.ascontiguousarray(std, dtype=np.float32),
-                },
+                {"fit_index": fit.fit_index},
+                {"vertices": fit.vertices, "triangles": fit.triangles,
+                 "vertex_std": fit.vertex_std},
                 source_ns=fit.data_ns,
-            )
+            )  # fmt: skip
         self.pub.publish(
             "mapper.fit",
             {
-                "fit_index": int(fit.fit_index),
-                "reliable": bool(fit.reliable),
+                "fit_index": fit.fit_index,
+                "reliable": fit.reliable,
                 "reasons": list(fit.reasons),
-                "data_ns": int(fit.data_ns),
+                "data_ns": fit.data_ns,
                 "lag_s": float(lag_s),
-                "fit_s": float(fit.timings.get("total_s", 0.0)),
+                "fit_s": fit.fit_s,
                 "hyperparameters": fit.hyperparameters,
-                "flagged_events": [int(e) for e in fit.flagged_events],
+                "flagged_events": list(fit.flagged_events),
             },
-            {"ids": fit.ids.astype(np.int64), "u": fit.u.astype(np.float64), "flags": fit.flags},
+            {"ids": fit.ids, "u": fit.u, "flags": fit.flags},
             source_ns=fit.data_ns,
         )
         if not fit.reliable:
@@ -418,6 +476,8 @@ class MapperProcess(Worker):
                        "lag_s": round(lag_s, 3),
                        "reliable": None if fit is None else fit.reliable,
                        "fitting_s": busy, "child_restarts": self.child_restarts,
+                       "child_ready_s": None if child is None or child.ready_s is None
+                       else round(child.ready_s, 3),
                        "refit_period_s": self.config.mapper.refit_period_s},
         }  # fmt: skip
         if self.catchup or self.repaired or self.lost:
