@@ -132,10 +132,15 @@ class Supervisor:
         Where worker output goes (inherited by default, so their errors reach the terminal).
     spare_delay_s : float
         A warm spare is started this long after the worker it stands in for (start-up first).
+    spare_stagger_s : float
+        At :meth:`start`, the spares follow one another at this interval (in start order)
+        instead of all importing at once: seven interpreters importing together at
+        ``spare_delay_s`` starved the mapper's fitting child of a loaded 2-core machine for
+        seconds (its first fit 7 s after the first touch in one live soak).
     """
 
     def __init__(self, specs: Sequence[WorkerSpec], stdout=None, stderr=None,
-                 spare_delay_s: float = 3.0):  # fmt: skip
+                 spare_delay_s: float = 3.0, spare_stagger_s: float = 1.5):  # fmt: skip
         names = [s.name for s in specs]
         if len(set(names)) != len(names):
             raise ValueError(f"worker names must be unique, got {names}")
@@ -143,7 +148,7 @@ class Supervisor:
         self._stdout = stdout
         self._stderr = stderr
         self._stopping = False
-        self.spare_delay_s = spare_delay_s
+        self.spare_delay_s, self.spare_stagger_s = spare_delay_s, spare_stagger_s
         self.pgid: int | None = None
         self._lock = threading.RLock()  # poll() may run in a watcher thread (cli/live.py)
 
@@ -170,7 +175,7 @@ class Supervisor:
         self.pgid = proc.pid
         return proc
 
-    def _spawn(self, w: _Worker) -> WorkerEvent:
+    def _spawn(self, w: _Worker, spare_after_s: float = 0.0) -> WorkerEvent:
         spare, w.spare = w.spare, None
         how = ""
         if spare is not None and spare.poll() is None:
@@ -189,7 +194,7 @@ class Supervisor:
         w.starts += 1
         w.restart_at = None
         if w.spec.warm and w.spec.module:
-            w.spare_at = time.monotonic() + self.spare_delay_s
+            w.spare_at = time.monotonic() + self.spare_delay_s + spare_after_s
         return WorkerEvent(w.spec.name, "started", detail=f"pid {w.proc.pid}{how}",
                            restarts=w.starts - 1)  # fmt: skip
 
@@ -201,7 +206,10 @@ class Supervisor:
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> list[WorkerEvent]:
         with self._lock:
-            return [self._spawn(w) for w in self._workers.values()]
+            warm = [w.spec.warm and w.spec.module is not None for w in self._workers.values()]
+            k = [sum(warm[:i]) for i in range(len(warm))]  # spares before this one
+            return [self._spawn(w, k[i] * self.spare_stagger_s)
+                    for i, w in enumerate(self._workers.values())]  # fmt: skip
 
     def poll(self, now: float | None = None) -> list[WorkerEvent]:
         """Check every worker once; restart the ones whose backoff has elapsed.

@@ -117,3 +117,22 @@ def test_a_warm_spare_takes_over_a_dead_worker(tmp_path):
     assert _wait_for(lambda: marker.exists() and len(marker.read_text().split()) >= 2)
     assert marker.read_text().split()[-1] == f"{spare}:1"  # incarnation 1, the spare's pid
     sup.stop()
+
+
+def test_spares_start_one_after_another_not_all_at_once(tmp_path):
+    """At start the warm spares follow one another (in start order, cold workers skipped):
+    all importing at once starved the mapper's fitting child of a loaded machine."""
+    module = "tests.integration.spare_target"
+    specs = [WorkerSpec(n, (sys.executable, "-m", module, str(tmp_path / n)), warm=w)
+             for n, w in (("a", True), ("cold", False), ("b", True), ("c", True))]  # fmt: skip
+    sup = Supervisor(specs, spare_delay_s=1.0, spare_stagger_s=10.0)
+    t0 = time.monotonic()
+    sup.start()
+    try:
+        spares = {}
+        for dt in (0.5, 1.5, 11.5, 21.5):
+            sup.poll(now=t0 + dt)
+            spares[dt] = sorted(n for n, w in sup._workers.items() if w.spare is not None)
+        assert spares == {0.5: [], 1.5: ["a"], 11.5: ["a", "b"], 21.5: ["a", "b", "c"]}
+    finally:
+        sup.stop()
