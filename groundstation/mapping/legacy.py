@@ -16,7 +16,6 @@ Pure: no clock reads except the ``timings_`` it reports, no files, no threads.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import time
 import warnings
@@ -25,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from groundstation.errors import ConvergenceWarning, InputDataError, NotFittedError
+from groundstation.mapping._linalg import blas_threads
 from groundstation.mapping.field import BandField, narrow_band_field
 from groundstation.mapping.gpis import GPIS
 from groundstation.mapping.grid import Grid
@@ -60,18 +60,6 @@ class IdUncertainty(NamedTuple):
 
     ids: np.ndarray
     u: np.ndarray
-
-
-@contextlib.contextmanager
-def _blas_threads(n: int):
-    if n <= 0:
-        yield
-        return
-    import scipy.linalg  # noqa: F401  (load scipy's BLAS before limiting it)
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(n):
-        yield
 
 
 def _quantised(lengthscale: float) -> float:
@@ -239,7 +227,7 @@ class LegacySurfaceModel:
         ids = np.arange(n, dtype=np.int64) if ids is None else np.asarray(ids)
         t_ns = np.arange(n, dtype=np.int64) if t_ns is None else np.asarray(t_ns)
         pilot_s = 0.0
-        with _blas_threads(ms.blas_threads):
+        with blas_threads(ms.blas_threads):
             t0 = time.perf_counter()
             if ms.merge and n > ms.merge_min_raw:
                 ts = self._merge(X, y, ids, t_ns)
@@ -348,7 +336,7 @@ class LegacySurfaceModel:
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """Posterior mean (m,) and, if ``return_std``, latent std (m,) at ``Xq`` (m, d) metres."""
         self._check_fitted()
-        with _blas_threads(self.mapping.blas_threads):
+        with blas_threads(self.mapping.blas_threads):
             return self.fit_.predict(Xq, return_std=return_std)
 
     def uncertainty_by_id(self) -> IdUncertainty:
@@ -386,7 +374,7 @@ class LegacySurfaceModel:
     def field(self, region_min=None, region_max=None) -> BandField:
         """Narrow-band mean field on :meth:`mesh_grid` (``field.narrow_band_field``)."""
         grid = self.mesh_grid(region_min, region_max)
-        with _blas_threads(self.mapping.blas_threads):
+        with blas_threads(self.mapping.blas_threads):
             return narrow_band_field(
                 self.fit_.predict,
                 grid,
@@ -414,7 +402,7 @@ class LegacySurfaceModel:
         mesh = extract_surface(band.values, band.grid)
         frac = self.surface.max_std_fraction
         if (with_std or frac < 1.0) and not mesh.is_empty:
-            with _blas_threads(self.mapping.blas_threads):
+            with blas_threads(self.mapping.blas_threads):
                 _, std = self.fit_.predict(mesh.vertices, return_std=True)
             mesh = SurfaceMesh(mesh.vertices, mesh.faces, mesh.normals, std)
             if frac < 1.0:

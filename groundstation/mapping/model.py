@@ -28,7 +28,6 @@ Pure: no clock reads except the ``timings_`` it reports, no files, no threads.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 import time
@@ -39,6 +38,7 @@ import numpy as np
 from groundstation.contact.detector import Observation
 from groundstation.contact.vehicle import VehicleSettings
 from groundstation.errors import InputDataError, NotFittedError
+from groundstation.mapping._linalg import blas_threads
 from groundstation.mapping.cavities import cavity_faces
 from groundstation.mapping.field import narrow_band_field
 from groundstation.mapping.grid import Grid
@@ -66,19 +66,6 @@ LEARN_HALO_MIN_M = 0.75
 
 _DEFAULT_MAPPING = MappingSettings()
 _DEFAULT_SURFACE = SurfaceSettings()
-
-
-@contextlib.contextmanager
-def blas_threads(n: int):
-    """Limit BLAS threads while fitting (0: leave the process setting alone)."""
-    if n <= 0:
-        yield
-        return
-    import scipy.linalg  # noqa: F401  (load scipy's BLAS before limiting it)
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(n):
-        yield
 
 
 def kernel_bounds(mapping: MappingSettings) -> KernelBounds:

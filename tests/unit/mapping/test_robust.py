@@ -450,3 +450,17 @@ def test_bad_settings_raise_config_error_at_fit(kwargs, match) -> None:
     model = RobustGPIS(**kwargs)
     with pytest.raises(ConfigError, match=match):
         model.fit(X, y)
+
+
+def test_blas_threads_limits_every_pool_and_restores_it():
+    from threadpoolctl import threadpool_info
+
+    from groundstation.mapping._linalg import blas_threads
+
+    before = [i["num_threads"] for i in threadpool_info()]
+    for _ in range(2):  # the cached pools serve a second use too
+        with blas_threads(1):
+            assert all(i["num_threads"] == 1 for i in threadpool_info())
+        assert [i["num_threads"] for i in threadpool_info()] == before
+    with blas_threads(0):  # 0: the process setting is left alone
+        assert [i["num_threads"] for i in threadpool_info()] == before
