@@ -134,9 +134,9 @@ class Supervisor:
         A warm spare is started this long after the worker it stands in for (start-up first).
     spare_stagger_s : float
         At :meth:`start`, the spares follow one another at this interval (in start order)
-        instead of all importing at once: seven interpreters importing together at
-        ``spare_delay_s`` starved the mapper's fitting child of a loaded 2-core machine for
-        seconds (its first fit 7 s after the first touch in one live soak).
+        instead of all importing at once while the session is still starting: in two of about
+        twelve live soaks on a 2-core machine the mapper's fitting child, at the spares'
+        priority, was ready only 7-8 s after start (0.8-2 s otherwise).
     """
 
     def __init__(self, specs: Sequence[WorkerSpec], stdout=None, stderr=None,
