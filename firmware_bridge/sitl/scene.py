@@ -115,6 +115,17 @@ class Box:
                 out.append(Face(index, label, tuple(pts), tuple([(n[0], n[1], n[2])] * len(pts))))
         return out
 
+    @property
+    def area(self) -> float:
+        """Surface area, square metres."""
+        e = [self.max[i] - self.min[i] for i in range(3)]
+        return 2.0 * (e[0] * e[1] + e[0] * e[2] + e[1] * e[2])
+
+    def holds(self, points: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+        """(n,) whether each of (n, 3) ``points`` lies inside the box or on its surface."""
+        p = np.asarray(points, dtype=float).reshape(-1, 3)
+        return np.all((p >= np.array(self.min) - tol) & (p <= np.array(self.max) + tol), axis=1)
+
     def area_points(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """``n`` points uniform on the surface (area-weighted), (n, 3) metres."""
         lo, hi = np.array(self.min), np.array(self.max)
@@ -180,6 +191,19 @@ class Cylinder:
             Face(index, "bottom", bot, ((0.0, 0.0, -1.0),) * len(bot)),
         ]
 
+    @property
+    def area(self) -> float:
+        """Surface area (side and both discs), square metres."""
+        return 2.0 * math.pi * self.radius * (self.height + self.radius)
+
+    def holds(self, points: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+        """(n,) whether each of (n, 3) ``points`` lies inside the cylinder or on its surface."""
+        p = np.asarray(points, dtype=float).reshape(-1, 3)
+        cx, cy, z0 = self.center
+        rho = np.hypot(p[:, 0] - cx, p[:, 1] - cy)
+        top = z0 + self.height
+        return (rho <= self.radius + tol) & (p[:, 2] >= z0 - tol) & (p[:, 2] <= top + tol)
+
     def area_points(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """``n`` points uniform on the surface (area-weighted), (n, 3) metres."""
         r, h = self.radius, self.height
@@ -217,6 +241,16 @@ class Sphere:
         dirs.append((0.0, 0.0, -1.0))
         pts = tuple(tuple(self.center[i] + self.radius * d[i] for i in range(3)) for d in dirs)
         return [Face(index, "surface", pts, tuple(dirs))]  # type: ignore[arg-type]
+
+    @property
+    def area(self) -> float:
+        """Surface area, square metres."""
+        return 4.0 * math.pi * self.radius**2
+
+    def holds(self, points: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+        """(n,) whether each of (n, 3) ``points`` lies inside the sphere or on its surface."""
+        p = np.asarray(points, dtype=float).reshape(-1, 3)
+        return np.linalg.norm(p - np.array(self.center), axis=1) <= self.radius + tol
 
     def area_points(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """``n`` points uniform on the sphere, (n, 3) metres."""
@@ -277,11 +311,34 @@ class Scene:
         return out
 
     def sample_surface(self, rng: np.random.Generator, n: int) -> np.ndarray:
-        """``n`` ground-truth points on the structures, area-weighted, (n, 3) metres."""
-        if not self.objects:
+        """``n`` ground-truth points uniform by area on the surface that exists, (n, 3) metres.
+
+        That is the boundary of the union of the structures: a face resting on the floor (the
+        region's bottom) or lying inside or against another structure (a pillar's top under a
+        deck, the deck's underside over it) is no surface a vehicle can touch or a map can draw.
+        Sampled by rejection from every primitive in proportion to its area; empty when there
+        are no structures or nothing of them is exposed.
+        """
+        if not self.objects or n <= 0:
             return np.zeros((0, 3))
-        per = [obj.area_points(rng, max(1, n // len(self.objects))) for obj in self.objects]
-        return np.concatenate(per)[:n]
+        areas = np.array([o.area for o in self.objects])
+        floor = float(self.region_min[2])
+        out: list[np.ndarray] = []
+        have = 0
+        for _ in range(32):  # each round keeps the exposed share of 2x what is still missing
+            counts = rng.multinomial(2 * (n - have) + 16, areas / areas.sum())
+            for i, (obj, m) in enumerate(zip(self.objects, counts, strict=True)):
+                p = obj.area_points(rng, int(m))
+                keep = p[:, 2] > floor + 1e-9
+                for j, other in enumerate(self.objects):
+                    if j != i:
+                        keep &= ~other.holds(p)
+                out.append(p[keep])
+                have += int(keep.sum())
+            if have >= n:
+                break
+        pts = np.concatenate(out)
+        return pts[rng.permutation(len(pts))[:n]]
 
     def to_dict(self) -> dict:
         """The scene as the JSON structure it was loaded from (normalized)."""

@@ -15,8 +15,9 @@ its internal point 0.1 m behind along the gust's "normal").
   once (``covered_s``); later passes revisit random patches, so the structure stops growing.
 
 Ground truth is the scene's signed distance (:func:`scene_sdf`, vectorised) and dense samples of
-the reachable surface (faces not lying on the region floor; ``truth_samples``).
-Reachable faces: every box/cylinder face except a bottom face standing on the floor.
+the surface that exists (``truth_samples``: the union's boundary, without faces on the region
+floor or against another structure). Reachable faces: every box/cylinder face except a bottom
+face standing on the floor.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import math
 
 import numpy as np
 
-from firmware_bridge.sitl.scene import Box, Cylinder, Scene, Sphere, load_scene
+from firmware_bridge.sitl.scene import Box, Cylinder, Scene, load_scene
 from groundstation.bench.shapes2d import (
     CONTACT,
     EXTERNAL,
@@ -212,53 +213,10 @@ def reachable_patches(scene: Scene, step: float = 0.5) -> tuple[np.ndarray, np.n
 
 
 def truth_samples(scene: Scene, rng: np.random.Generator, n: int = 20000) -> np.ndarray:
-    """``n`` points uniform (by area) on the reachable true surface, (n, 3) metres."""
-    parts, areas = [], []
-    for obj in scene.objects:
-        if isinstance(obj, Box):
-            e = np.subtract(obj.max, obj.min)
-            a = [e[1] * e[2]] * 2 + [e[0] * e[2]] * 2 + [e[0] * e[1]] * 2
-            names = ["xmin", "xmax", "ymin", "ymax", "zmin", "zmax"]
-            for k, name in enumerate(names):
-                if not _on_floor(scene, obj, name):
-                    parts.append((obj, k))
-                    areas.append(a[k])
-        elif isinstance(obj, Cylinder):
-            parts.append((obj, "side"))
-            areas.append(2 * math.pi * obj.radius * obj.height)
-            parts.append((obj, "top"))
-            areas.append(math.pi * obj.radius**2)
-            if not _on_floor(scene, obj, "bottom"):
-                parts.append((obj, "bottom"))
-                areas.append(math.pi * obj.radius**2)
-        elif isinstance(obj, Sphere):
-            parts.append((obj, "sphere"))
-            areas.append(4 * math.pi * obj.radius**2)
-    areas_arr = np.asarray(areas)
-    counts = rng.multinomial(n, areas_arr / areas_arr.sum())
-    out = []
-    for (obj, which), m in zip(parts, counts, strict=True):
-        if m == 0:
-            continue
-        if isinstance(obj, Box):
-            lo, hi = np.asarray(obj.min), np.asarray(obj.max)
-            p = lo + rng.random((m, 3)) * (hi - lo)
-            axis = which // 2
-            p[:, axis] = lo[axis] if which % 2 == 0 else hi[axis]
-        elif isinstance(obj, Cylinder):
-            cx, cy, z0 = obj.center
-            ang = rng.random(m) * 2 * math.pi
-            if which == "side":
-                rad, z = np.full(m, obj.radius), z0 + rng.random(m) * obj.height
-            else:
-                rad = obj.radius * np.sqrt(rng.random(m))
-                z = np.full(m, z0 + (obj.height if which == "top" else 0.0))
-            p = np.column_stack([cx + rad * np.cos(ang), cy + rad * np.sin(ang), z])
-        else:
-            d = rng.standard_normal((m, 3))
-            p = np.asarray(obj.center) + obj.radius * d / np.linalg.norm(d, axis=1, keepdims=True)
-        out.append(p)
-    return np.concatenate(out)
+    """``n`` points uniform (by area) on the true surface that exists, (n, 3) metres: the
+    union's boundary without the floor faces (``Scene.sample_surface``, the same truth the
+    session scores use)."""
+    return scene.sample_surface(rng, n)
 
 
 def _project(scene: Scene, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

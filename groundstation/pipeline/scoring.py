@@ -19,6 +19,9 @@ Metrics (all distances in metres)
 ``truth_to_mesh_median_m``, ``missing_share``
     Over the touched true surface (within ``touched_radius_m`` of a true touch): median distance
     to the mesh, and the share farther than ``missing_m`` (0.1 m) from it: surface the map lacks.
+    The true surface sampled here and in both Chamfer distances is the surface that exists
+    (``Scene.sample_surface``): faces resting on the floor or lying inside or against another
+    structure (a pillar's top under a deck) are left out, and structures count by area.
 ``missing_share_near``
     The same share within ``near_radius_m`` (0.2 m) of a true touch: the surface the touches
     themselves lie on. The gap between the two is surface the map would have to extrapolate

@@ -140,6 +140,53 @@ def test_surface_samples_lie_on_the_surface():
     assert np.max(np.abs(scene.signed_distance(pts))) < 1e-9
 
 
+def test_surface_samples_are_the_exposed_surface_uniform_by_area():
+    # A deck on a pillar, both on the floor, and a free-standing cube: the pillar's top under
+    # the deck, the deck's underside over the pillar and every bottom face on the floor are no
+    # surface; what is left is sampled in proportion to its area.
+    scene = parse_scene(
+        _scene(
+            [
+                {"type": "cylinder", "center": [2, 2, 0], "radius": 0.2, "height": 1},
+                {"type": "box", "min": [1, 1, 1], "max": [3, 3, 1.2]},
+                {"type": "box", "min": [5, 1, 0], "max": [6, 2, 1]},
+            ]
+        )
+    )
+    pts = scene.sample_surface(np.random.default_rng(0), 40000)
+    assert pts.shape == (40000, 3)
+    assert np.max(np.abs(scene.signed_distance(pts))) < 1e-9
+    assert not np.any(pts[:, 2] < 1e-9)  # nothing on the floor
+    under_deck = (pts[:, 2] == pytest.approx(1.0)) & (np.hypot(pts[:, 0] - 2, pts[:, 1] - 2) < 0.2)
+    assert not under_deck.any()  # neither the pillar's top nor the deck's underside above it
+    held = sum(o.holds(pts).astype(int) for o in scene.objects)
+    assert np.all(held == 1)
+    deck_under = 4 - math.pi * 0.2**2
+    areas = {
+        "pillar": 2 * math.pi * 0.2 * 1,
+        "deck": 4 + deck_under + 8 * 0.2,
+        "cube": 5.0,
+    }
+    total = sum(areas.values())
+    on_cube = np.mean(pts[:, 0] >= 5 - 1e-9)
+    on_pillar = np.mean((pts[:, 2] < 1 - 1e-9) & (pts[:, 0] < 4))
+    assert on_cube == pytest.approx(areas["cube"] / total, abs=0.01)
+    assert on_pillar == pytest.approx(areas["pillar"] / total, abs=0.01)
+
+
+def test_primitives_hold_their_inside_and_surface_only():
+    box = Box((0, 0, 0), (1, 1, 1))
+    cyl = Cylinder((0, 0, 0), 0.5, 1.0)
+    ball = Sphere((0, 0, 0), 0.5)
+    pts = np.array([[0.5, 0.5, 0.5], [1.0, 0.5, 0.5], [1.01, 0.5, 0.5], [0.0, 0.0, 1.0]])
+    assert box.holds(pts).tolist() == [True, True, False, True]
+    assert cyl.holds(pts).tolist() == [False, False, False, True]
+    assert ball.holds(np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.51]])).tolist() == [True, False]
+    assert box.area == pytest.approx(6.0)
+    assert cyl.area == pytest.approx(2 * math.pi * 0.5 * 1.5)
+    assert ball.area == pytest.approx(math.pi)
+
+
 def test_signed_distance_vectorised_matches_closest():
     scene = load_scene("paper")
     rng = np.random.default_rng(0)
