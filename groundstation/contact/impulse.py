@@ -553,6 +553,7 @@ class ImpulseDetector:
         )
         out: list[Observation] = []
         p_on, t_on = c.p[on_row], int(c.t[on_row])
+        spread = math.radians(s.normal_spread_deg)
         for k, r in enumerate(rows):
             pos = c.p[r]
             if not np.isfinite(pos).all():
@@ -563,7 +564,7 @@ class ImpulseDetector:
                 self.stats.left_contact += len(rows) - k  # flown off: the rest is wind
                 break
             R = self._r_world(np.array([r]))[0] @ _C_FRD_FLU  # body FLU -> world ENU
-            xc = pos + contact_offset(v, n, R)
+            xc = pos + contact_offset(v, n, R, spread)
             xin = xc - s.internal_depth_m * n
             extra = dict(p_false=ev.p_false, dv_mps=f.dv_imu_mps, rebound=f.rebound, sigma_m=sigma)
             t_r = int(c.t[r])

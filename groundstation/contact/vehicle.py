@@ -116,40 +116,73 @@ class VehicleSettings:
 
 
 def _support_guards(v: VehicleSettings, d: np.ndarray) -> np.ndarray:
-    """Support point of the guarded body in body direction ``d`` (unit, FLU)."""
-    best, best_h = None, -math.inf
-    dxy = np.array([d[0], d[1], 0.0])
-    nxy = float(np.linalg.norm(dxy))
-    ring = v.guard_radius_m * (dxy / nxy) if nxy > 1e-9 else np.zeros(3)
-    for c in v.rotor_centres():
-        p = c + ring  # farthest point of a horizontal circle along d
-        h = float(p @ d)
-        if h > best_h:
-            best, best_h = p, h
-    bx, by, bz = v.body_half_m
-    corner = np.array([math.copysign(bx, d[0]), math.copysign(by, d[1]), math.copysign(bz, d[2])])
-    if float(corner @ d) > best_h:
-        best, best_h = corner, float(corner @ d)
-    for p in v.leg_points():
-        if float(p @ d) > best_h:
-            best, best_h = p, float(p @ d)
-    return best
+    """Support points of the guarded body in body directions ``d`` (k, 3) unit, FLU: (k, 3).
+
+    Candidates in order: each guard ring's farthest point along ``d``, the body box's corner,
+    the leg ends; the first of the farthest wins (a tie between two rings keeps the first)."""
+    dxy = d * np.array([1.0, 1.0, 0.0])
+    nxy = np.linalg.norm(dxy, axis=1, keepdims=True)
+    ring = np.where(nxy > 1e-9, v.guard_radius_m * dxy / np.maximum(nxy, 1e-12), 0.0)
+    rings = v.rotor_centres()[None, :, :] + ring[:, None, :]  # (k, 4, 3)
+    corner = np.copysign(np.asarray(v.body_half_m, dtype=np.float64), d)[:, None, :]
+    legs = np.broadcast_to(v.leg_points()[None], (d.shape[0], *v.leg_points().shape))
+    cand = np.concatenate([rings, corner, legs], axis=1)
+    best = np.argmax(np.einsum("kcj,kj->kc", cand, d), axis=1)
+    return cand[np.arange(d.shape[0]), best]
 
 
 def _support_cylinder(v: VehicleSettings, d: np.ndarray) -> np.ndarray:
-    """Support point of the world-vertical cylinder in world direction ``d`` (unit)."""
-    nxy = math.hypot(d[0], d[1])
-    ring = (
-        np.array([d[0], d[1], 0.0]) * (v.radius_m / nxy) if nxy > 1e-9 else np.zeros(3)
-    )  # a face-on vertical normal touches the flat end anywhere: take its centre
-    return ring + np.array([0.0, 0.0, math.copysign(0.5 * v.height_m, d[2]) if d[2] else 0.0])
+    """Support points of the world-vertical cylinder in world directions ``d`` (k, 3) unit."""
+    nxy = np.hypot(d[:, 0], d[:, 1])[:, None]
+    # a face-on vertical direction touches the flat end anywhere: take its centre
+    ring = np.where(
+        nxy > 1e-9, d * np.array([1.0, 1.0, 0.0]) * v.radius_m / np.maximum(nxy, 1e-12), 0.0
+    )
+    ring[:, 2] = 0.5 * v.height_m * np.sign(d[:, 2])
+    return ring
+
+
+#: Directions averaged over the cap of the normal's uncertainty (``contact_offset``).
+CAP_DIRECTIONS = 64
+_GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
+
+
+def cap_directions(d: np.ndarray, half_angle_rad: float, k: int = CAP_DIRECTIONS) -> np.ndarray:
+    """(k, 3) unit directions uniform by solid angle over the cap of ``half_angle_rad`` around
+    the unit vector ``d`` (a Fibonacci spiral: deterministic, evenly spread)."""
+    i = np.arange(k) + 0.5
+    cos_a = 1.0 - (1.0 - math.cos(half_angle_rad)) * i / k
+    sin_a = np.sqrt(np.maximum(0.0, 1.0 - cos_a * cos_a))
+    phi = i * _GOLDEN_ANGLE
+    a = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(d, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(d, e1)
+    return (
+        cos_a[:, None] * d[None, :]
+        + (sin_a * np.cos(phi))[:, None] * e1[None, :]
+        + (sin_a * np.sin(phi))[:, None] * e2[None, :]
+    )
 
 
 def contact_offset(
-    v: VehicleSettings, normal_world: np.ndarray, r_world_body: np.ndarray
+    v: VehicleSettings,
+    normal_world: np.ndarray,
+    r_world_body: np.ndarray,
+    spread_rad: float = 0.0,
 ) -> np.ndarray:
     """Offset (world, metres) from the centre of mass to the body point that touches a surface
     with outward normal ``normal_world``.
+
+    Where the body is flat facing the structure (the cylinder's side facing a wall, its end
+    facing a floor, two guard rings side by side facing a wall) every point of that flat part
+    touches, and the support point of the exact direction jumps from one end to the other
+    with the normal's smallest tilt: a wall touch by the cylinder lands on its top or bottom
+    rim (0.05 m off), a floor touch on its rim (0.2 m off), a wall touch between two guards on
+    one of them (0.12 m off). With ``spread_rad`` > 0 the offset is the mean of the support
+    points over every direction within that angle of the normal (the uncertainty of the
+    measured normal): the middle of the flat part, which lies on a flat structure, and on a
+    curved part a few millimetres inside its rim.
 
     Parameters
     ----------
@@ -158,6 +191,8 @@ def contact_offset(
         Outward unit normal of the structure, world frame (ENU).
     r_world_body : (3, 3) float64
         Rotation body FLU -> world ENU at the time of the contact.
+    spread_rad : float
+        Half angle of the cone of directions averaged, radians (0: the exact support point).
 
     Returns
     -------
@@ -165,10 +200,11 @@ def contact_offset(
     """
     d_world = -np.asarray(normal_world, dtype=np.float64)
     d_world = d_world / max(float(np.linalg.norm(d_world)), 1e-12)
+    dirs = d_world[None, :] if spread_rad <= 0.0 else cap_directions(d_world, spread_rad)
     if v.shape == "cylinder":
-        return _support_cylinder(v, d_world)
+        return _support_cylinder(v, dirs).mean(axis=0)
     R = np.asarray(r_world_body, dtype=np.float64)
-    return R @ _support_guards(v, R.T @ d_world)
+    return R @ _support_guards(v, dirs @ R).mean(axis=0)
 
 
 def paper_offset(normal_world: np.ndarray, radius_m: float, height_m: float) -> np.ndarray:

@@ -125,10 +125,11 @@ def test_guarded_body_places_the_contact_on_the_guard_rim_whatever_the_yaw():
         yaw_enu = math.pi / 2 - yaw  # FRD yaw from north -> FLU heading from east
         R = np.array([[math.cos(yaw_enu), -math.sin(yaw_enu), 0], [math.sin(yaw_enu),
                       math.cos(yaw_enu), 0], [0, 0, 1]])  # fmt: skip
-        expected = pos[on] + contact_offset(body, WALL, R)
+        spread = math.radians(ContactSettings().normal_spread_deg)
+        expected = pos[on] + contact_offset(body, WALL, R, spread)
         assert np.linalg.norm(xc - expected) < 0.01
         reach = -(expected - pos[on]) @ WALL
-        assert 0.24 < reach < 0.30  # the guard rims reach 0.25-0.29 m
+        assert 0.235 < reach < 0.30  # the guard rims reach 0.24-0.29 m (the cap mean: <1 mm less)
 
 
 def test_body_support_points():
@@ -140,6 +141,50 @@ def test_body_support_points():
     assert np.allclose(contact_offset(g, WALL, np.eye(3)), [-(0.17 + 0.12), 0.0, 0.0])
     with pytest.raises(ConfigError):
         VehicleSettings(shape="sphere")
+
+
+def _tilted(normal, axis, deg):
+    """``normal`` turned by ``deg`` about ``axis`` (Rodrigues)."""
+    n, k, a = np.asarray(normal, float), np.asarray(axis, float), math.radians(deg)
+    return n * math.cos(a) + np.cross(k, n) * math.sin(a) + k * (k @ n) * (1 - math.cos(a))
+
+
+def test_a_flat_part_of_the_body_touches_at_its_middle_not_at_an_end_the_normal_tilts_to():
+    spread = math.radians(10.0)
+    cyl = VehicleSettings()
+    # A wall (outward normal +x) measured 2 deg tilted up or down: the exact support point
+    # jumps to the cylinder's top or bottom rim; the cap mean stays at mid-height on its side.
+    for deg in (-2.0, 2.0):
+        n = _tilted(WALL, [0, 1, 0], deg)
+        assert abs(contact_offset(cyl, n, np.eye(3))[2]) == pytest.approx(0.05)
+        off = contact_offset(cyl, n, np.eye(3), spread)
+        assert abs(off[2]) < 0.015 and off[0] == pytest.approx(-0.2, abs=0.005)
+    # A floor touched from above, the normal 3 deg off vertical: the rim of the bottom end
+    # (0.2 m out) against a point near its centre.
+    n = _tilted([0, 0, 1.0], [1, 0, 0], 3.0)
+    assert np.hypot(*contact_offset(cyl, n, np.eye(3))[:2]) == pytest.approx(0.2)
+    off = contact_offset(cyl, n, np.eye(3), spread)
+    assert np.hypot(*off[:2]) < 0.1 and off[2] == pytest.approx(-0.05)
+    # "x" layout facing a wall head-on: two guard rings touch it; the exact support point is
+    # one of them (0.12 m aside), the cap mean lies between them, on the wall.
+    g = VehicleSettings(shape="guards", layout="x", leg_length_m=0.0)
+    reach = 0.17 * math.cos(math.pi / 4) + 0.12
+    exact = contact_offset(g, WALL, np.eye(3))
+    assert abs(exact[1]) == pytest.approx(0.17 * math.sin(math.pi / 4), abs=1e-9)
+    off = contact_offset(g, WALL, np.eye(3), spread)
+    assert abs(off[1]) < 0.01 and off[0] == pytest.approx(-reach, abs=0.005)
+    # Where the body is curved (the cylinder's side on a pillar) the mean stays on the rim.
+    assert contact_offset(cyl, WALL, np.eye(3), spread) == pytest.approx([-0.2, 0, 0], abs=0.003)
+
+
+def test_cap_directions_are_unit_and_within_the_cap():
+    from groundstation.contact.vehicle import cap_directions
+
+    for d in (np.array([0, 0, 1.0]), np.array([1.0, 0, 0]), np.array([0.6, -0.64, 0.48])):
+        dirs = cap_directions(d, math.radians(10.0))
+        assert np.allclose(np.linalg.norm(dirs, axis=1), 1.0)
+        assert np.all(dirs @ d >= math.cos(math.radians(10.0)) - 1e-12)
+        assert np.linalg.norm(dirs.mean(axis=0) - d * (dirs @ d).mean()) < 1e-2  # centred on d
 
 
 def test_manoeuvres_along_the_thrust_axis_make_no_candidate():
