@@ -101,6 +101,7 @@ def training_policy(
         sweep_llr=mapping.sweep_llr,
         burst_events_min=mapping.burst_events_min,
         burst_llr=mapping.burst_llr,
+        burst_min_p_false=mapping.burst_min_p_false,
         tangent_slope_noise=mapping.tangent_slope_noise,
         plane_reach_m=mapping.plane_reach_m,
         plane_noise_per_m=mapping.plane_noise_per_m,

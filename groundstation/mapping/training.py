@@ -34,7 +34,9 @@
   a real surface is touched on separate visits, a gust cluster in one window, and a pilot
   tapping one spot three times in seconds is rare (in the SITL flights no touch burst of three
   occurred while 30 % of the gusts started clusters; the ratio is capped at e^3 = 20 so that
-  other visits to the same patch can still vouch for it).
+  other visits to the same patch can still vouch for it). An event whose prior ``P(false)`` is
+  below ``burst_min_p_false`` gets no burst evidence: impacts the detector vouches for are a
+  pilot tapping a spot (no detected gust of the tuning flights had ``p_false`` below 0.06).
 - **Settled events.** Events named in ``settled`` (a live mapper settles an event once it has
   been trusted for a while: ``MappingSettings.settle_p_false``) no longer form groups: their
   contact and internal rows are pooled per ``settled_voxel_m`` voxel and face (the axis
@@ -97,6 +99,7 @@ class TrainingPolicy:
     event_gap_s: float = 0.2
     burst_events_min: int = 3
     burst_llr: float = 3.0
+    burst_min_p_false: float = 0.05
     tangent_slope_noise: float = 0.0
     plane_reach_m: float = 0.0
     plane_noise_per_m: float = 0.5
@@ -376,6 +379,7 @@ def build_training_set(
     burst = _bursts(t_span, list(cen), p)
     size = np.bincount(burst, minlength=int(burst.max(initial=-1)) + 1) if burst.size else burst
     clustered = size[burst] >= p.burst_events_min if burst.size else np.zeros(0, dtype=bool)
+    clustered &= prior >= p.burst_min_p_false  # impacts the detector vouches for: a pilot tapping
     is_free = col.label > 0
     swept = _swept(contacts, t_span, col.X[is_free], col.t[is_free], p)
     return TrainingSet(

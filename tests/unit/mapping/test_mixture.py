@@ -248,6 +248,29 @@ def test_training_set_groups_bursts_priors_and_the_swept_volume():
     assert ts.groups.extra_llr[2] == policy.sweep_llr
 
 
+def test_a_burst_is_evidence_against_its_events_unless_the_detector_vouches_for_them():
+    """Three events 1 s and 0.1 m apart form a burst: ``burst_llr`` for 'false' on each whose
+    prior is at least ``burst_min_p_false`` (a gust cluster, or events of unknown origin), none
+    on impacts the detector is sure of (a pilot tapping a spot)."""
+    policy = TrainingPolicy()
+
+    def taps(p_false):
+        o = []
+        for k in range(3):
+            p = [0.0, 0.05 * k, 1.0]
+            q = [-0.1, 0.05 * k, 1.0]
+            o += [
+                obs(2 * k, float(k), p, 0, k, p_false[k]),
+                obs(2 * k + 1, float(k), q, -1, k, p_false[k]),
+            ]
+        return build_training_set(o, policy).groups
+
+    g = taps([0.6, 0.01, math.nan])  # a gust, a vouched-for impact, an event without p_false
+    assert len(set(g.burst.tolist())) == 1
+    assert list(g.extra_llr) == [policy.burst_llr, 0.0, policy.burst_llr]
+    assert list(taps([0.01, 0.02, 0.008]).extra_llr) == [0.0, 0.0, 0.0]
+
+
 def test_rows_come_in_order_one_per_group_voxel_and_loose_contacts_group_into_runs():
     """Free rows first (the first sample of each free voxel, by id), then each group's
     voxels (groups in the order of their first observation, one row per voxel and label at
