@@ -54,7 +54,7 @@ class MappingSettings:
         ``prior_false``) is at least this: three impacts the detector vouches for, close in
         time and place, are a pilot tapping a spot, not a gust. On the tuning flights (seed
         200, contacts placed with ``contact.normal_spread_deg`` 20) no detected gust had
-        ``p_false`` below 0.06 (117 gusts, 5 % below 0.28) and 62-77 % of the touches had it
+        ``p_false`` below 0.06 (117 gusts, 5 % below 0.29) and 62-77 % of the touches had it
         below 0.05. The bundled pillar survey taps the pillar's top three times in 5 s, 0.14 m
         apart (``p_false`` 0.007-0.009): with the burst evidence all three were flagged and 18 %
         of the surface near its touches went missing; without it none.
