@@ -162,7 +162,9 @@ class Mapper:
         self.surface = surface or SurfaceSettings()
         self._factory = model_factory or default_model_factory
         if self.mapping.engine == "mixture" and model_factory is None:
-            self._model = SurfaceModel(self.mapping, self.surface, vehicle, internal_depth_m)
+            self._model = SurfaceModel(
+                self.mapping, self.surface, vehicle, internal_depth_m, decide_p=self.settings.flag_p
+            )
         else:
             self._model = self._factory(self.mapping, self.surface)
         self._obs: dict[int, Observation] = {}

@@ -14,7 +14,7 @@ Fit (an EM on the two-component mixture, one responsibility per group)
 ----------------------------------------------------------------------
 1. Responsibilities ``r_g = P(z_g = false | data)`` start at the priors (or the last fit's).
 2. The GP is fitted with every group decided: precision ``1 / s_i^2`` for the rows of a group
-   with ``r_g <= 1/2``, ``1 / s_out^2`` for the others (a classification EM: the mean-field
+   with ``r_g <= decide_p``, ``1 / s_out^2`` for the others (a classification EM: the mean-field
    expectation of the precision would let a 90 % false group still draw its phantom patch),
    factorised in the B form (``_linalg.factorize_blocks``: only the blocks of P step 3 needs).
 3. Each *burst* (groups close in time and space: ``mapping/events.py``) is left out as a whole,
@@ -38,8 +38,10 @@ The kernel hyperparameters maximise the weighted GP's evidence ``log N(y | mu0, 
 ``W`` fixed (L-BFGS-B on the M3 gradient), inside :class:`KernelBounds` (tied to the map's
 resolution), when asked for (``learn_kernel``): at the first iteration of a fit.
 
-``posterior_false_`` is a calibrated probability per group; a group is flagged false when it
-exceeds 1/2 (the decision that minimises errors for equal costs).
+``posterior_false_`` is a calibrated probability per group; a group is decided (fitted and
+flagged) false when it exceeds ``decide_p``: 1/2 minimises errors for equal costs, and ``c / (1 +
+c)`` minimises the expected cost when trusting a false contact costs ``1 / c`` times as much as
+dropping a true one.
 """
 
 from __future__ import annotations
@@ -124,7 +126,7 @@ class MixtureFit:
     n_train : int
     n_groups : int
     n_flagged : int
-        Groups with ``posterior_false > 0.5``.
+        Groups decided false (``posterior_false > decide_p``).
     reasons : tuple of str
         Why the fit may not be trusted (empty when fine).
     """
@@ -314,6 +316,9 @@ class EventMixtureGPIS:
         its ``llr_g`` is at most 0: a false contact lies where the vehicle flew, in free space.
     chunk_mb : float
         Memory budget of one prediction chunk.
+    decide_p : float
+        A group whose posterior P(false) exceeds this is decided false: fitted with the
+        outlier variance, and flagged (``mapper.flag_p``; 1/2 minimises errors for equal costs).
     """
 
     def __init__(
@@ -331,9 +336,12 @@ class EventMixtureGPIS:
         kernel_block_rows: int = 0,
         flag_inside: bool = False,
         chunk_mb: float = 64.0,
+        decide_p: float = 0.5,
     ) -> None:
         if not outlier_var > 0 or max_iter < 1 or not tol > 0:
             raise InputDataError("outlier_var > 0, max_iter >= 1 and tol > 0 are required")
+        if not 0.0 < decide_p < 1.0:
+            raise InputDataError(f"decide_p must be in (0, 1), got {decide_p!r}")
         self.bounds = bounds
         self.lengthscale, self.signal_var = bounds.clip(lengthscale, signal_var)
         self.outlier_var = float(outlier_var)
@@ -345,6 +353,7 @@ class EventMixtureGPIS:
         self.kernel_block_rows = int(kernel_block_rows)
         self.flag_inside = bool(flag_inside)
         self.chunk_mb = float(chunk_mb)
+        self.decide_p = float(decide_p)
         self.fit_: MixtureFit | None = None
 
     # ------------------------------------------------------------------ fitting
@@ -414,15 +423,15 @@ class EventMixtureGPIS:
             logit = np.log(prior) - np.log1p(-prior) + llr + groups.extra_llr
             r_new = 1.0 / (1.0 + np.exp(-np.clip(logit, -50.0, 50.0)))
             delta = float(np.max(np.abs(r_new - r))) if r.size else 0.0
-            same = bool(np.array_equal(r_new > 0.5, r > 0.5))
-            seen.add((r > 0.5).tobytes())
+            same = bool(np.array_equal(r_new > self.decide_p, r > self.decide_p))
+            seen.add((r > self.decide_p).tobytes())
             r = r_new
             # the fit depends on the decisions only: once none flips and the posteriors
             # settle, another iteration changes nothing the map shows
             if delta < self.tol or (same and delta < 10.0 * self.tol):
                 converged = True
                 break
-            if not same and (r > 0.5).tobytes() in seen:
+            if not same and (r > self.decide_p).tobytes() in seen:
                 # decisions came back to an earlier set: a cycle between groups that explain
                 # each other away; stop with the posteriors of this iteration
                 cycled = True
@@ -451,7 +460,7 @@ class EventMixtureGPIS:
             at_bounds=at,
             n_train=n,
             n_groups=int(r.size),
-            n_flagged=int(np.sum(r > 0.5)),
+            n_flagged=int(np.sum(r > self.decide_p)),
             reasons=() if converged else (("decisions_cycle",) if cycled else ("not_converged",)),
         )
         return self
@@ -477,13 +486,13 @@ class EventMixtureGPIS:
         return self._kernel_step(X[is_val], X.mean(axis=0), w[is_val], resid, ell, sf2)
 
     def _precisions(self, s2, rg, in_group, r) -> np.ndarray:
-        """Row precisions for the GP: a group decided false (``r > 1/2``) counts with the
+        """Row precisions for the GP: a group decided false (``r > decide_p``) counts with the
         outlier variance, one decided true with its own noise. (The mean-field expectation
         ``(1 - r) / s^2 + r / s_out^2`` lets a group that is 90 % false still pull the surface
         with a tenth of a true contact's weight, a phantom patch the map then draws.)"""
         w = 1.0 / s2
         if r.size:
-            false = in_group & (r[np.maximum(rg, 0)] > 0.5)
+            false = in_group & (r[np.maximum(rg, 0)] > self.decide_p)
             w = np.where(false, 1.0 / (_EXCLUDED * self.outlier_var), w)
         return w
 

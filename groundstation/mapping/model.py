@@ -37,7 +37,7 @@ import numpy as np
 
 from groundstation.contact.detector import Observation
 from groundstation.contact.vehicle import VehicleSettings
-from groundstation.errors import InputDataError, NotFittedError
+from groundstation.errors import ConfigError, InputDataError, NotFittedError
 from groundstation.mapping._linalg import blas_threads
 from groundstation.mapping.cavities import cavity_faces
 from groundstation.mapping.field import narrow_band_field
@@ -142,6 +142,9 @@ class SurfaceModel:
         The body whose swept volume refutes contacts.
     internal_depth_m : float
         ``d_in`` of the detector (the slope of the potential behind a contact).
+    decide_p : float
+        An event whose posterior P(false) exceeds this is decided false: left out of the map
+        and flagged (the mapper passes ``mapper.flag_p``: one rule for both).
 
     Attributes (after ``fit``)
     --------------------------
@@ -159,8 +162,12 @@ class SurfaceModel:
         surface: SurfaceSettings = _DEFAULT_SURFACE,
         vehicle: VehicleSettings | None = None,
         internal_depth_m: float = 0.1,
+        decide_p: float = 0.5,
     ) -> None:
+        if not 0.0 < decide_p < 1.0:
+            raise ConfigError(f"decide_p must be in (0, 1), got {decide_p!r}")
         self.mapping = mapping
+        self.decide_p = float(decide_p)
         self.surface = surface
         self.vehicle = vehicle or VehicleSettings()
         self.policy = training_policy(mapping, self.vehicle, internal_depth_m)
@@ -220,6 +227,7 @@ class SurfaceModel:
             kernel_block_rows=ms.kernel_block_rows,
             flag_inside=ms.flag_inside,
             chunk_mb=self.surface.chunk_mb,
+            decide_p=self.decide_p,
         )
 
     def _subset(self, ts: TrainingSet, rows: np.ndarray, start: np.ndarray):
@@ -249,7 +257,7 @@ class SurfaceModel:
         rows, priors or decisions changed are refitted. Returns the posterior P(false) of every
         group (from the tile holding its contacts' centroid) and whether the kernel was learnt.
 
-        A kernel step needs ``learn_min_events`` events the data trust (P(false) < 0.5) in the
+        A kernel step needs ``learn_min_events`` events the data trust (P(false) <= decide_p) in the
         learning tile; with fewer the kernel holds. Free space alone (every row +1) is fitted
         best by the smoothest field, so a kernel learnt on one touch amid free space went to
         the 0.5 m cap, and the touch was then flagged for being alone (issue 13, Build point 6:
@@ -281,7 +289,7 @@ class SurfaceModel:
         # every tile the surface can reach, also one with no shape row in its own core
         near = layout.keys_near(ts.X[shape], REACH_LENGTHSCALES * self._theta[0])
         tile_keys = {tuple(int(v) for v in k) for k in near}
-        decided = start > 0.5
+        decided = start > self.decide_p
         fitted: dict[tuple, _TileFit] = {}
         for key in sorted(tile_keys):
             rows = layout.members(ts.X, key)
@@ -325,7 +333,7 @@ class SurfaceModel:
 
     def _identified(self, p_false: np.ndarray) -> bool:
         """Whether events with these P(false) identify the kernel (``learn_min_events``)."""
-        return int(np.sum(p_false < 0.5)) >= self.mapping.learn_min_events
+        return int(np.sum(p_false <= self.decide_p)) >= self.mapping.learn_min_events
 
     @staticmethod
     def _learning_tile(ts: TrainingSet, start: np.ndarray, layout: TileLayout) -> tuple:
@@ -400,7 +408,7 @@ class SurfaceModel:
             at_bounds=self.bounds.at_bound(ell, sf2),
             n_train=len(ts),
             n_groups=int(post.size),
-            n_flagged=int(np.sum(post > 0.5)),
+            n_flagged=int(np.sum(post > self.decide_p)),
             reasons=() if all(f.converged for f in fits) else ("not_converged",),
         )
         self.fit_ = self  # fitted marker (the tiles hold the estimators)
@@ -450,7 +458,7 @@ class SurfaceModel:
         ts = self.training_set_
         rg = ts.groups.row_group
         w = 1.0 / ts.noise_var
-        false = (rg >= 0) & (self.posterior_false_[np.maximum(rg, 0)] > 0.5)
+        false = (rg >= 0) & (self.posterior_false_[np.maximum(rg, 0)] > self.decide_p)
         return np.where(false, 1.0 / (1e4 * self.mapping.outlier_var), w)
 
     def event_posteriors(self) -> dict[int, float]:
@@ -551,7 +559,7 @@ class SurfaceModel:
         the settled pool)."""
         g = self.training_set_.groups.row_group
         trusted = np.ones(g.size, dtype=bool)
-        trusted[g >= 0] = self.posterior_false_[g[g >= 0]] <= 0.5
+        trusted[g >= 0] = self.posterior_false_[g[g >= 0]] <= self.decide_p
         return trusted
 
     def _clip(self) -> tuple[np.ndarray, np.ndarray]:

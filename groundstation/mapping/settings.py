@@ -573,8 +573,10 @@ class MapperSettings:
     min_contacts : int
         Contact observations needed before the first fit.
     flag_p : float
-        An event is flagged false when its posterior probability of being false exceeds this
-        (mixture engine; 1/2 minimises errors for equal costs).
+        An event is decided false when its posterior probability of being false exceeds this
+        (mixture engine): flagged, and left out of the map. One threshold for both: before,
+        the map left events out above 1/2 whatever this was, and drew events it flagged.
+        1/2 minimises errors for equal costs.
     flag_u : float
         Margin of the flag rule above the fit's noise floor, label units^2 (legacy engine).
     flag_event_fraction : float

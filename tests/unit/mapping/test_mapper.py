@@ -207,3 +207,51 @@ def test_settings_validated():
         MapperSettings(refit_min_new=0)
     with pytest.raises(ConfigError, match="flag_event_fraction"):
         MapperSettings(flag_event_fraction=1.5)
+
+
+def _sphere_and_a_doubted_lone_touch():
+    """The sphere above (touches the detector believes, free space round them), and far from
+    it a lone touch the detector doubts (P(false) 0.45) that nothing refutes."""
+    rng = np.random.default_rng(1)
+    o, i = [], 0
+    for k in range(60):
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        c = np.array([2.0, 2.0, 1.0]) + 0.5 * n
+        o += [
+            Observation(i, int(k * 0.1 * S), c, 0.0, n, k, 2.0, p_false=0.01),
+            Observation(i + 1, int(k * 0.1 * S), c - 0.1 * n, -1.0, n, k, 2.0, p_false=0.01),
+        ]
+        i += 2
+    for k in range(120):
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        o.append(obs(i, 6 + k * 0.05, 1, np.array([2.0, 2.0, 1.0]) + rng.uniform(0.8, 1.2) * n))
+        i += 1
+    lone = np.array([4.0, 4.0, 1.0])
+    for k in range(2):
+        c = lone + [0.02 * k, 0.0, 0.0]
+        up = np.array([0.0, 0.0, 1.0])
+        o += [
+            Observation(i, int((10 + 0.04 * k) * S), c, 0.0, up, 77, 2.0, p_false=0.45),
+            Observation(i + 1, int((10 + 0.04 * k) * S), c - 0.1 * up, -1.0, up, 77, 2.0,
+                        p_false=0.45),
+        ]  # fmt: skip
+        i += 2
+    return o, lone
+
+
+@pytest.mark.parametrize("flag_p", [0.5, 0.25])
+def test_flag_p_decides_the_map_and_the_flags_alike(flag_p):
+    o, lone = _sphere_and_a_doubted_lone_touch()
+    m = Mapper(MapperSettings(flag_p=flag_p))
+    m.add(o)
+    fit = m.refit()
+    assert fit.reliable and fit.mesh is not None and not fit.mesh.is_empty
+    near = np.linalg.norm(fit.mesh.vertices - lone, axis=1).min()
+    if flag_p < 0.45:
+        assert fit.flagged_events == (77,)
+        assert near > 1.0  # left out of the map: nothing is drawn round it
+    else:
+        assert 77 not in fit.flagged_events
+        assert near < 0.15  # kept: the map draws it

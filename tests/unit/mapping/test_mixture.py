@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from groundstation.contact.detector import Observation
+from groundstation.errors import InputDataError
 from groundstation.mapping.kernels import se_kernel, se_mixed
 from groundstation.mapping.mixture import EventMixtureGPIS, Groups, KernelBounds
 from groundstation.mapping.training import TrainingPolicy, build_training_set
@@ -188,6 +189,37 @@ def test_a_lone_touch_with_nothing_against_it_keeps_its_prior():
     est = EventMixtureGPIS(lengthscale=0.3, signal_var=0.6, bounds=BOUNDS)
     est.fit(X, y, s2, groups(g, 0.1))
     assert est.posterior_false_[12] < 0.5
+
+
+@pytest.mark.parametrize("decide_p", [0.5, 0.25])
+def test_the_decision_threshold_decides_fit_and_flags_alike(decide_p):
+    """A lone event whose posterior stays near its prior of 0.45 is kept at 1/2 and decided false,
+    left out of the fit and counted flagged, at 1/4; the wall's touches are kept either way."""
+    X, y, g = toy()
+    far = np.array([3.0, 3.0, 3.0])
+    X = np.vstack([X, far, far - [0.1, 0, 0]])
+    y = np.concatenate([y, [0.0, -0.5]])
+    g = np.concatenate([g, [12, 12]])
+    s2 = np.where(g < 0, 0.09, 0.0025)
+    prior = np.r_[np.full(12, 0.01), 0.45]
+    est = EventMixtureGPIS(
+        lengthscale=0.3, signal_var=0.6, bounds=BOUNDS, learn_kernel=False, decide_p=decide_p
+    )
+    est.fit(X, y, s2, groups(g, prior))
+    p = est.posterior_false_[12]
+    assert 0.25 < p < 0.5
+    lone = g == 12
+    false = decide_p < p
+    assert np.allclose(est.weights_[lone], 1e-4 if false else 1.0 / 0.0025, rtol=1e-6)
+    assert est.fit_.n_flagged == int(false)
+    inside = est.predict((far - [0.1, 0, 0])[None, :])[0]  # its internal point, label -0.5
+    assert (abs(inside) < 0.05) if false else (inside < -0.4)
+    assert np.all(est.posterior_false_[:12] < 0.05)
+
+
+def test_the_decision_threshold_must_be_a_probability():
+    with pytest.raises(InputDataError, match="decide_p"):
+        EventMixtureGPIS(lengthscale=0.3, signal_var=0.6, bounds=BOUNDS, decide_p=1.0)
 
 
 def test_a_cluster_cannot_vouch_for_itself_when_left_out_as_a_burst():
