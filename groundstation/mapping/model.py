@@ -99,6 +99,7 @@ def training_policy(
         sweep_exclude_s=mapping.sweep_exclude_s,
         sweep_tolerance_m=mapping.sweep_tolerance_m,
         sweep_llr=mapping.sweep_llr,
+        sweep_disc_m=mapping.sweep_disc_m,
         burst_events_min=mapping.burst_events_min,
         burst_llr=mapping.burst_llr,
         burst_min_p_false=mapping.burst_min_p_false,

@@ -45,16 +45,20 @@
   precision (the same evidence, in rows bounded by the touched area). The tangent-plane rows
   of one settled event per voxel stay, trusted. Settled groups keep their bookkeeping (ids,
   time span) and no rows.
-- **Swept volume.** The vehicle's body cannot have passed through a surface: a contact point
-  that lies inside the body (``body_radius_m`` around a free-space centre, ``body_half_height_m``
-  above and below) at a free-space sample taken at least ``sweep_exclude_s`` away from the event
-  is refuted. It adds ``sweep_llr`` nats to the event's evidence for 'false' (a true contact is
-  only ever inside the swept body by its placement error, kept out by ``sweep_tolerance_m``).
+- **Swept volume.** The vehicle's body cannot have passed through a surface: an event whose
+  contact, or any point of its tangent disc of radius ``sweep_disc_m`` round a contact (the
+  surface a touch shows goes on round it), lies inside the body (``body_radius_m`` around a
+  free-space centre, ``body_half_height_m`` above and below) at a free-space sample taken at
+  least ``sweep_exclude_s`` away from the event is refuted. It adds ``sweep_llr`` nats to the
+  event's evidence for 'false' (a true contact is only ever inside the swept body by its
+  placement error, kept out by ``sweep_tolerance_m``, or where its surface ends within the
+  disc: an edge the vehicle later flew round at the height of the touch).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections.abc import Sequence
 
@@ -95,6 +99,7 @@ class TrainingPolicy:
     sweep_exclude_s: float = 0.5
     sweep_tolerance_m: float = 0.03
     sweep_llr: float = 4.6
+    sweep_disc_m: float = 0.0
     contact_voxel_m: float = 0.05
     event_gap_s: float = 0.2
     burst_events_min: int = 3
@@ -132,7 +137,7 @@ class TrainingSet:
     group_ids : tuple of (k,) int64 arrays
         Observation ids of each group (contacts and internal points).
     swept : (G,) bool
-        The group's contact lies in the body's swept volume.
+        The group's contact, or its tangent disc, lies in the body's swept volume.
     keys : tuple of tuple
         Stable identity of each group (:func:`group_key`).
     t_end_ns : (G,) int64
@@ -381,7 +386,7 @@ def build_training_set(
     clustered = size[burst] >= p.burst_events_min if burst.size else np.zeros(0, dtype=bool)
     clustered &= prior >= p.burst_min_p_false  # impacts the detector vouches for: a pilot tapping
     is_free = col.label > 0
-    swept = _swept(contacts, t_span, col.X[is_free], col.t[is_free], p)
+    swept = _swept(contacts, cen, nrm, t_span, col.X[is_free], col.t[is_free], p)
     return TrainingSet(
         X=np.concatenate(rows_X).reshape(-1, d),
         directions=np.concatenate(dirs).reshape(-1, d),
@@ -528,36 +533,65 @@ def _bursts(
 
 
 def _swept(
-    contacts, t_span, free_pts: np.ndarray, free_t: np.ndarray, p: TrainingPolicy
-) -> np.ndarray:
-    """Which groups' contact points lie inside the body at a free-space sample away from them."""
+    contacts, centres, normals, t_span, free_pts: np.ndarray, free_t: np.ndarray,
+    p: TrainingPolicy,
+) -> np.ndarray:  # fmt: skip
+    """Which groups' contact points, or the rim of their tangent disc (``sweep_disc_m`` round
+    the contacts' centroid, across their mean normal), lie inside the body at a free-space
+    sample away from them."""
     G = len(contacts)
     out = np.zeros(G, dtype=bool)
     if G == 0 or free_pts.shape[0] == 0 or free_pts.shape[1] != 3:
         return out
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(free_pts)
-    r = p.body_radius_m - p.sweep_tolerance_m
-    h = p.body_half_height_m - p.sweep_tolerance_m
-    if r <= 0:
+    if p.body_radius_m - p.sweep_tolerance_m <= 0:
         return out
-    excl = int(p.sweep_exclude_s * 1e9)
     sizes = [len(cs) for cs in contacts]
     if not sum(sizes):
         return out
+    tree = cKDTree(free_pts)
     pts = np.concatenate([cs for cs in contacts if len(cs)])
-    owner = np.repeat(np.arange(G), sizes)
+    _inside_body(tree, free_t, pts, np.repeat(np.arange(G), sizes), t_span, p, out)
+    rim_of = np.flatnonzero((np.asarray(sizes) > 0) & ~out & np.any(normals != 0.0, axis=1))
+    if p.sweep_disc_m > 0 and rim_of.size:  # only the groups the points left standing
+        rims = _rims(centres[rim_of], normals[rim_of], p.sweep_disc_m).reshape(-1, 3)
+        _inside_body(tree, free_t, rims, np.repeat(rim_of, DISC_POINTS), t_span, p, out)
+    return out
+
+
+def _inside_body(tree, free_t, pts, owner, t_span, p: TrainingPolicy, out: np.ndarray) -> None:
+    """Set ``out[owner[k]]`` where probe ``pts[k]`` lies inside the body (shrunk by the
+    tolerance) at a free-space sample of ``tree`` taken ``sweep_exclude_s`` or more away from
+    its group's time span."""
+    r = p.body_radius_m - p.sweep_tolerance_m
+    h = p.body_half_height_m - p.sweep_tolerance_m
     near = tree.query_ball_point(pts, math.hypot(r, max(h, 0.0)))
-    count = np.fromiter((len(j) for j in near), np.int64, len(near))
+    count = np.fromiter(map(len, near), np.int64, len(near))
     if not count.sum():
-        return out
-    i = np.repeat(np.arange(len(near)), count)  # (contact, free sample) pairs in reach
-    j = np.fromiter((k for js in near for k in js), np.int64, int(count.sum()))
+        return
+    i = np.repeat(np.arange(len(near)), count)  # (probe, free sample) pairs in reach
+    j = np.fromiter(itertools.chain.from_iterable(near), np.int64, int(count.sum()))
+    excl = int(p.sweep_exclude_s * 1e9)
     lo = np.array([s[0] for s in t_span], dtype=np.int64)[owner[i]] - excl
     hi = np.array([s[1] for s in t_span], dtype=np.int64)[owner[i]] + excl
-    dx = free_pts[j] - pts[i]
+    dx = tree.data[j] - pts[i]
     inside = (np.hypot(dx[:, 0], dx[:, 1]) < r) & (np.abs(dx[:, 2]) < h)
     away = (free_t[j] < lo) | (free_t[j] > hi)  # a sample away from the event
     out[owner[i[inside & away]]] = True
-    return out
+
+
+#: Points on the rim of a contact's tangent disc (``_rims``).
+DISC_POINTS = 12
+
+
+def _rims(centres: np.ndarray, normals: np.ndarray, radius: float) -> np.ndarray:
+    """(k, DISC_POINTS, 3): the rim of the disc of ``radius`` round each centre (k, 3), in
+    the plane across its unit normal (k, 3)."""
+    ref = np.where((np.abs(normals[:, 2]) < 0.9)[:, None], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
+    a = np.cross(normals, ref)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = np.cross(normals, a)
+    ang = np.linspace(0.0, 2.0 * np.pi, DISC_POINTS, endpoint=False)
+    c, s = np.cos(ang)[None, :, None], np.sin(ang)[None, :, None]
+    return centres[:, None, :] + radius * (c * a[:, None, :] + s * b[:, None, :])

@@ -280,6 +280,30 @@ def test_training_set_groups_bursts_priors_and_the_swept_volume():
     assert ts.groups.extra_llr[2] == policy.sweep_llr
 
 
+@pytest.mark.parametrize("disc", [0.0, 0.1])
+def test_the_body_passing_through_a_contacts_tangent_disc_refutes_it(disc):
+    """A touch on a wall x = 0 (normal +x). Later the body flies along the wall touching it
+    (event 0's side: no refutation), and through the wall's plane 0.25 m beside event 1's
+    contact: outside the body's reach of the point (0.17 m) but within it of the disc (0.1 m
+    round the contact), so only the disc test refutes it."""
+    policy = TrainingPolicy(body_radius_m=0.2, body_half_height_m=0.05, sweep_disc_m=disc)
+    x = np.array([1.0, 0.0, 0.0])
+
+    def touch(i, t, c, e):
+        c = np.asarray(c, float)
+        return [
+            Observation(i, int(t * 1e9), c, 0.0, x, e, 0.0, p_false=0.1, sigma_m=0.01),
+            Observation(i + 1, int(t * 1e9), c - 0.1 * x, -1.0, x, e, 0.0, p_false=0.1,
+                        sigma_m=0.01),
+        ]  # fmt: skip
+
+    o = touch(0, 0.0, [0, 0, 1], 0) + touch(2, 30.0, [0, 3, 1], 1)
+    o += [obs(4, 10.0, [0.21, 0.1, 1.0], 1, -1), obs(5, 40.0, [0.0, 3.25, 1.0], 1, -1)]
+    ts = build_training_set(o, policy)
+    assert list(ts.swept) == [False, disc > 0]
+    assert ts.groups.extra_llr[1] == (policy.sweep_llr if disc > 0 else 0.0)
+
+
 def test_a_burst_is_evidence_against_its_events_unless_the_detector_vouches_for_them():
     """Three events 1 s and 0.1 m apart form a burst: ``burst_llr`` for 'false' on each whose
     prior is at least ``burst_min_p_false`` (a gust cluster, or events of unknown origin), none
