@@ -46,8 +46,8 @@
   of one settled event per voxel stay, trusted. Settled groups keep their bookkeeping (ids,
   time span) and no rows.
 - **Swept volume.** The vehicle's body cannot have passed through a surface: an event whose
-  contact, or any point of its tangent disc of radius ``sweep_disc_m`` round a contact (the
-  surface a touch shows goes on round it), lies inside the body (``body_radius_m`` around a
+  contact, or a point on the rim of its tangent disc of radius ``sweep_disc_m`` round its
+  contacts' centroid (the surface a touch shows goes on round it), lies inside the body (``body_radius_m`` around a
   free-space centre, ``body_half_height_m`` above and below) at a free-space sample taken at
   least ``sweep_exclude_s`` away from the event is refuted. It adds ``sweep_llr`` nats to the
   event's evidence for 'false' (a true contact is only ever inside the swept body by its
