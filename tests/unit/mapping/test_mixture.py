@@ -44,6 +44,17 @@ def toy(seed=0, n_free=60):
     return np.array(X), np.array(y), np.array(g)
 
 
+def toy_with_event(point, seed=0, n_free=60):
+    """``toy`` and event 12: a contact at ``point`` with its internal point 0.1 m behind (-x);
+    returns X, y, g and the rows' noise variances (free 0.3^2, contact and internal 0.05^2)."""
+    X, y, g = toy(seed, n_free)
+    point = np.asarray(point, float)
+    X = np.vstack([X, point, point - [0.1, 0, 0]])
+    y = np.concatenate([y, [0.0, -0.5]])
+    g = np.concatenate([g, [12, 12]])
+    return X, y, g, np.where(g < 0, 0.09, 0.0025)
+
+
 def groups(g, prior, burst=None, extra=None):
     G = int(g.max()) + 1
     return Groups(
@@ -121,13 +132,8 @@ def test_leave_burst_out_residuals_equal_an_explicit_refit_without_the_burst():
 
 
 def test_a_false_contact_in_free_space_is_flagged_and_a_doubted_touch_on_the_wall_is_not():
-    X, y, g = toy()
     # event 12: a 'contact' in the middle of the free points; event 0 doubted by its prior
-    fake = np.array([0.6, 0.7, 0.7])
-    X = np.vstack([X, fake, fake - [0.1, 0, 0]])
-    y = np.concatenate([y, [0.0, -0.5]])
-    g = np.concatenate([g, [12, 12]])
-    s2 = np.where(g < 0, 0.09, 0.0025)
+    X, y, g, s2 = toy_with_event([0.6, 0.7, 0.7])
     prior = np.full(13, 0.1)
     prior[0] = 0.8
     est = EventMixtureGPIS(lengthscale=0.3, signal_var=0.6, bounds=BOUNDS)
@@ -180,12 +186,7 @@ def test_touches_the_kernel_is_too_smooth_for_are_not_taken_for_gusts():
 
 
 def test_a_lone_touch_with_nothing_against_it_keeps_its_prior():
-    X, y, g = toy()
-    far = np.array([3.0, 3.0, 3.0])  # nothing within metres
-    X = np.vstack([X, far, far - [0.1, 0, 0]])
-    y = np.concatenate([y, [0.0, -0.5]])
-    g = np.concatenate([g, [12, 12]])
-    s2 = np.where(g < 0, 0.09, 0.0025)
+    X, y, g, s2 = toy_with_event([3.0, 3.0, 3.0])  # nothing within metres
     est = EventMixtureGPIS(lengthscale=0.3, signal_var=0.6, bounds=BOUNDS)
     est.fit(X, y, s2, groups(g, 0.1))
     assert est.posterior_false_[12] < 0.5
@@ -195,12 +196,8 @@ def test_a_lone_touch_with_nothing_against_it_keeps_its_prior():
 def test_the_decision_threshold_decides_fit_and_flags_alike(decide_p):
     """A lone event whose posterior stays near its prior of 0.45 is kept at 1/2 and decided false,
     left out of the fit and counted flagged, at 1/4; the wall's touches are kept either way."""
-    X, y, g = toy()
     far = np.array([3.0, 3.0, 3.0])
-    X = np.vstack([X, far, far - [0.1, 0, 0]])
-    y = np.concatenate([y, [0.0, -0.5]])
-    g = np.concatenate([g, [12, 12]])
-    s2 = np.where(g < 0, 0.09, 0.0025)
+    X, y, g, s2 = toy_with_event(far)
     prior = np.r_[np.full(12, 0.01), 0.45]
     est = EventMixtureGPIS(
         lengthscale=0.3, signal_var=0.6, bounds=BOUNDS, learn_kernel=False, decide_p=decide_p
