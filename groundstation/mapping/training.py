@@ -47,12 +47,13 @@
   time span) and no rows.
 - **Swept volume.** The vehicle's body cannot have passed through a surface: an event whose
   contact, or a point on the rim of its tangent disc of radius ``sweep_disc_m`` round its
-  contacts' centroid (the surface a touch shows goes on round it), lies inside the body (``body_radius_m`` around a
-  free-space centre, ``body_half_height_m`` above and below) at a free-space sample taken at
-  least ``sweep_exclude_s`` away from the event is refuted. It adds ``sweep_llr`` nats to the
-  event's evidence for 'false' (a true contact is only ever inside the swept body by its
-  placement error, kept out by ``sweep_tolerance_m``, or where its surface ends within the
-  disc: an edge the vehicle later flew round at the height of the touch).
+  contacts' centroid (the surface a touch shows goes on round it), lies inside the body
+  (``body_radius_m`` around a free-space centre, ``body_half_height_m`` above and below) at a
+  free-space sample taken at least ``sweep_exclude_s`` away from the event is refuted. It
+  adds ``sweep_llr`` nats to the event's evidence for 'false' (a true contact is only ever
+  inside the swept body by its placement error, kept out by ``sweep_tolerance_m``, or where
+  its surface ends within the disc: an edge the vehicle later flew round at the height of the
+  touch).
 """
 
 from __future__ import annotations
