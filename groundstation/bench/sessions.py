@@ -156,6 +156,12 @@ def markdown(comparison: Mapping[str, Any], overrides: Mapping[str, Sequence[str
             extra = {
                 "events: gusts flagged": lambda p: _share(p, "gust_events_flagged"),
                 "events: touches flagged": lambda p: _share(p, "touch_events_flagged"),
+                "... contact on the surface": lambda p: _share(
+                    p, "touch_events_flagged_on_surface"
+                ),
+                "... contact mislocated (> 0.1 m)": lambda p: _share(
+                    p, "mislocated_touches_flagged"
+                ),
                 "events: flag precision": lambda p: _share(p, "fp_precision"),
                 "events: touches detected": lambda p: _share(p, "detection_recall"),
                 "u-AUC gust vs touch": lambda p: fmt(p["u_auc"], ".2f"),

@@ -27,15 +27,25 @@ from pathlib import Path
 
 import numpy as np
 
+from groundstation.contact.detector import LABEL_SURFACE
 from groundstation.pipeline.offline import PipelineResult
 from groundstation.pipeline.scoring import DetectedEvent, score
 
 
 def detected_events(result: PipelineResult) -> list[DetectedEvent]:
-    """Begin messages of the run with the final fit's flag."""
+    """Begin messages of the run with the final fit's flag and their contact points."""
     flagged = set(result.final.flagged_events) if result.final is not None else set()
+    points: dict[int, list[tuple[float, float, float]]] = {}
+    for o in result.observations:
+        if o.label == LABEL_SURFACE:
+            points.setdefault(int(o.event_id), []).append(tuple(map(float, o.position)))
     return [
-        DetectedEvent(int(e.payload["id"]), int(e.header.source_ns), e.payload["id"] in flagged)
+        DetectedEvent(
+            int(e.payload["id"]),
+            int(e.header.source_ns),
+            e.payload["id"] in flagged,
+            tuple(points.get(int(e.payload["id"]), ())),
+        )  # fmt: skip
         for e in result.events
         if e.payload["state"] == "begin"
     ]

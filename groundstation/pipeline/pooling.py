@@ -4,10 +4,11 @@ Pooled metrics (per variant, over its finished tasks)
 -----------------------------------------------------
 ``metrics``: for every truth metric of ``report.json`` (:data:`TRUTH_METRICS`), the number of
 tasks that have it, its mean, median and worst (largest for errors, smallest for rates to
-maximise). ``shares``: event counts pooled over tasks (gust / touch events flagged, flag
-precision, touches detected). ``u_auc``: probability that a gust event's median contact u
-exceeds a touch event's. ``refit_s_median``: median over every refit of every task.
-``task_wall_s``: mean / median / max wall time of one task (replay + outputs).
+maximise). ``shares``: event counts pooled over tasks (gust / touch events flagged, touch
+events flagged among those whose contacts lie on the surface and among the mislocated ones
+(``pipeline.scoring``), flag precision, touches detected). ``u_auc``: probability that a gust
+event's median contact u exceeds a touch event's. ``refit_s_median``: median over every refit
+of every task. ``task_wall_s``: mean / median / max wall time of one task (replay + outputs).
 
 A task record is ``{"status": "done" | "failed" | "missing", "report": report.json,
 "done": done.json, "error": text}`` (``pipeline.batch_outputs.read_record``).
@@ -140,10 +141,29 @@ def pool(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                 s += float(v)
         return s
 
+    def counted(key: str, count: Any) -> dict[str, float]:
+        """A share pooled over the reports that have it, each weighted by ``count(report)``."""
+        num = den = 0.0
+        for rep in reports:
+            v, w = rep.get(key), count(rep)
+            if v is None or w is None or not math.isfinite(float(v)):
+                continue
+            num += round(float(v) * float(w))
+            den += float(w)
+        return _share(num, den)
+
+    def on_surface(rep: Mapping[str, Any]) -> float | None:
+        n, off = rep.get("events_touch"), rep.get("events_touch_mislocated")
+        return None if n is None or off is None else float(n) - float(off)
+
     shares = {
         "gust_events_flagged": _share(total("events_flagged_false"), total("events_false")),
         "touch_events_flagged": _share(
             total("touch_events_flagged", "events_touch"), total("events_touch")
+        ),
+        "touch_events_flagged_on_surface": counted("touch_events_flagged_on_surface", on_surface),
+        "mislocated_touches_flagged": counted(
+            "mislocated_touches_flagged", lambda rep: rep.get("events_touch_mislocated")
         ),
         "fp_precision": _share(total("events_flagged_false"), total("events_flagged")),
         "detection_recall": _share(
@@ -259,7 +279,11 @@ def summary_markdown(summary: Mapping[str, Any], title: str = "groundstation bat
         lines.append(f"| {key} | {better} | " + " | ".join(cells) + " |")
     lines += ["", "## Pooled over events, and time", ""]
     lines += ["| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
-    for key in ("gust_events_flagged", "touch_events_flagged", "fp_precision", "detection_recall"):
+    pooled_keys = (
+        "gust_events_flagged", "touch_events_flagged", "touch_events_flagged_on_surface",
+        "mislocated_touches_flagged", "fp_precision", "detection_recall",
+    )  # fmt: skip
+    for key in pooled_keys:
         row = []
         for name in names:
             s = variants[name]["pooled"]["shares"][key]

@@ -37,6 +37,15 @@ Metrics (all distances in metres)
     invents surface, to look at in the viewer.
 ``gust_events_flagged``, ``touch_events_flagged``
     Shares of detected events matched to truth gusts / touches that the map flags false.
+``events_touch_mislocated``, ``touch_events_flagged_on_surface``, ``mislocated_touches_flagged``
+    A touch event is *mislocated* when the contact points the detector placed for it lie
+    farther than ``missing_m`` (0.1 m, their median distance) from any real surface: the
+    vehicle touched something, but not where the map was told (a tilted normal, a tumble, a
+    touch on a guard's far side). Drawing such a contact draws phantom surface, so flagging it
+    is right for the map, and ``touch_events_flagged`` counts it as a loss all the same. These
+    keys split it: the number of mislocated touch events, the share of the other touches
+    (contacts on the surface) that the map flags, and the share of the mislocated ones it
+    flags. Events whose contact points are unknown count as on the surface.
 ``fp_precision``, ``fp_recall``
     Detected contact events are matched to truth events by time: a detected event whose start
     lies in ``[start - 0.1 s, end + 0.3 s]`` of a truth event matches it (nearest start wins).
@@ -65,11 +74,13 @@ PHANTOM_LISTED = 3  # largest phantom patches listed by where they lie
 
 @dataclasses.dataclass(frozen=True)
 class DetectedEvent:
-    """A detected contact event: id, start time on the log axis (ns), flagged or not."""
+    """A detected contact event: id, start time on the log axis (ns), flagged or not, and the
+    contact points the detector placed for it (world metres; empty when unknown)."""
 
     id: int
     t_start_ns: int
     flagged: bool = False
+    points: tuple[tuple[float, float, float], ...] = ()
 
 
 def match_events(events: Sequence[DetectedEvent], truth: dict) -> dict[int, tuple[int, str] | None]:
@@ -89,7 +100,9 @@ def match_events(events: Sequence[DetectedEvent], truth: dict) -> dict[int, tupl
     return out
 
 
-def false_positive_scores(events: Sequence[DetectedEvent], truth: dict) -> dict[str, float]:
+def false_positive_scores(
+    events: Sequence[DetectedEvent], truth: dict, *, mislocated_m: float = 0.1
+) -> dict[str, float]:
     """``mesh_to_truth_median_m``
         Median distance of the mesh (area-uniform samples) to the true surface.
     ``truth_to_mesh_median_m``, ``missing_share``
@@ -101,6 +114,10 @@ def false_positive_scores(events: Sequence[DetectedEvent], truth: dict) -> dict[
         by shared vertices: their total area and the largest patch's (surface the map invents).
     ``gust_events_flagged``, ``touch_events_flagged``
         Shares of detected events matched to truth gusts / touches that the map flags false.
+    ``events_touch_mislocated``, ``touch_events_flagged_on_surface``,
+    ``mislocated_touches_flagged``
+        Touch events whose contact points lie (median) more than ``mislocated_m`` from any real
+        surface, the share of the other touch events flagged, and of the mislocated ones.
     ``fp_precision``, ``fp_recall``, ``detection_recall`` and the counts behind them."""
     m = match_events(events, truth)
     false = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "gust"}
@@ -110,10 +127,15 @@ def false_positive_scores(events: Sequence[DetectedEvent], truth: dict) -> dict[
     tp = len(false & flagged)
     gusts = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "gust"}
     touched = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "touch"}
+    off = _mislocated([e for e in events if e.id in touched], truth, mislocated_m)
+    on = touched - off
     return {
         "gust_events_flagged": len(gusts & flagged) / len(gusts) if gusts else math.nan,
         "touch_events_flagged": len(touched & flagged) / len(touched) if touched else math.nan,
         "events_touch": len(touched),
+        "events_touch_mislocated": len(off),
+        "touch_events_flagged_on_surface": len(on & flagged) / len(on) if on else math.nan,
+        "mislocated_touches_flagged": len(off & flagged) / len(off) if off else math.nan,
         "fp_precision": tp / len(flagged) if flagged else math.nan,
         "fp_recall": tp / len(false) if false else math.nan,
         "detection_recall": len(found & set(touches)) / len(touches) if touches else math.nan,
@@ -123,6 +145,20 @@ def false_positive_scores(events: Sequence[DetectedEvent], truth: dict) -> dict[
         "events_unmatched": sum(v is None for v in m.values()),
         "truth_gusts": sum(c["kind"] == "gust" for c in truth.get("contacts", [])),
         "truth_touches": len(touches),
+    }
+
+
+def _mislocated(events: Sequence[DetectedEvent], truth: dict, limit_m: float) -> set[int]:
+    """Ids of ``events`` whose contact points lie (median) farther than ``limit_m`` from any
+    real surface; none without a scene or without points."""
+    placed = [e for e in events if e.points]
+    if not placed or not truth.get("scene"):
+        return set()
+    scene = _scene(truth)
+    return {
+        e.id
+        for e in placed
+        if float(np.median(distance_to_world(scene, np.asarray(e.points)))) > limit_m
     }
 
 

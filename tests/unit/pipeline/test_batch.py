@@ -141,6 +141,22 @@ def test_pool_counts_events_over_logs_and_ignores_failures_in_metrics():
     assert set(p["metrics"]) == set(TRUTH_METRICS)
 
 
+def test_pool_splits_touch_flags_by_where_the_contacts_lie():
+    a = _record(0.1, 3, 2, 2, touch_share=0.5, touches=4)
+    a["report"].update(events_touch_mislocated=1, touch_events_flagged_on_surface=1 / 3,
+                       mislocated_touches_flagged=1.0)  # fmt: skip
+    b = _record(0.1, 3, 2, 2, touch_share=0.0, touches=6)
+    b["report"].update(events_touch_mislocated=0, touch_events_flagged_on_surface=0.0,
+                       mislocated_touches_flagged=None)  # fmt: skip
+    older = _record(0.1, 3, 2, 2, touch_share=0.5, touches=2)  # a report from before the split
+    s = pool([a, b, older])["shares"]
+    assert (s["touch_events_flagged"]["num"], s["touch_events_flagged"]["den"]) == (3, 12)
+    on = s["touch_events_flagged_on_surface"]
+    assert (on["num"], on["den"]) == (1, 9)  # 3 + 6 touches on the surface, one flagged
+    off = s["mislocated_touches_flagged"]
+    assert (off["num"], off["den"]) == (1, 1)
+
+
 def test_summary_lists_every_variant_log_and_failure():
     plan = plan_batch([A, B], [Variant("base"), Variant("low", ("contact.threshold_g=1.0",))],
                       resolve)  # fmt: skip

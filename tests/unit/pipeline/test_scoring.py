@@ -76,3 +76,42 @@ def test_a_mesh_on_the_floor_is_real_surface_and_one_below_it_is_phantom():
     (where,) = below["phantom_patches"]  # one patch, listed with where it lies
     assert abs(where["centre"][2] + 0.5) < 1e-9 and where["area_m2"] > 0.9
     assert below["mesh_to_truth_median_m"] > 0.4
+
+
+def test_touches_placed_off_the_surface_are_counted_apart_from_those_on_it():
+    import numpy as np
+
+    from groundstation.pipeline.scoring import DetectedEvent, false_positive_scores
+
+    # a wall x = 1 and four touches; the detector put the third's contacts 0.3 m in front of
+    # the wall (a mislocated touch: drawing it would draw phantom surface), and gave the
+    # fourth no contact points (counted on the surface)
+    scene = {
+        "region": {"min": [-1, -2, 0], "max": [3, 2, 2]},
+        "objects": [{"type": "box", "min": [1.0, -2.0, 0.0], "max": [1.2, 2.0, 2.0]}],
+    }
+    starts = [1.0, 2.0, 3.0, 4.0]
+    truth = {
+        "scene": scene,
+        "contacts": [
+            {"kind": "touch", "start": t, "end": t + 0.05, "point": [1.0, 0.0, 1.0]} for t in starts
+        ],
+    }
+    on = ((1.01, 0.0, 1.0), (0.99, 0.05, 1.0))
+    off = ((0.7, 0.0, 1.0), (0.72, 0.1, 1.0), (1.0, 0.0, 1.0))  # median 0.28 m off
+    events = [
+        DetectedEvent(0, int(1e9), flagged=True, points=on),
+        DetectedEvent(1, int(2e9), flagged=False, points=on),
+        DetectedEvent(2, int(3e9), flagged=True, points=off),
+        DetectedEvent(3, int(4e9), flagged=False),
+    ]
+    s = false_positive_scores(events, truth)
+    assert s["touch_events_flagged"] == 0.5
+    assert s["events_touch_mislocated"] == 1
+    assert s["touch_events_flagged_on_surface"] == 1 / 3
+    assert s["mislocated_touches_flagged"] == 1.0
+    # at a looser limit nothing is mislocated and the split is the plain share
+    loose = false_positive_scores(events, truth, mislocated_m=0.5)
+    assert loose["events_touch_mislocated"] == 0
+    assert loose["touch_events_flagged_on_surface"] == 0.5
+    assert np.isnan(loose["mislocated_touches_flagged"])
