@@ -40,7 +40,8 @@ An event with ``p_false < reject_p_false`` yields a contact observation (y = 0) 
 facing ``-n`` (``contact/vehicle.py``) at the pose of that instant, an internal one ``d_in``
 behind it (y = -1), and more pairs at ``contact_rate_hz`` while a long push lasts and the
 vehicle stays within sliding reach of where it touched (``sustain_speed_mps``); each carries
-``p_false``, the impulse ``dv_mps``, ``rebound`` and a placement uncertainty ``sigma_m``. Free
+``p_false``, the impulse ``dv_mps``, ``rebound`` and a placement uncertainty ``sigma_m``. The
+pairs stop once the vehicle has moved out along ``n`` by ``sustain_normal_m``: it has left. Free
 space (y = +1) is the vehicle position every ``1 / external_rate_hz`` of data time and every
 ``external_spacing_m`` of path, not during an impulse nor within ``quiet_s`` after one.
 
@@ -533,6 +534,16 @@ class ImpulseDetector:
             return []
         return self._contact_observations(event, on_row, close_row, feats)
 
+    def _left(self, moved: np.ndarray, n: np.ndarray, dt_ns: int) -> bool:
+        """Whether a vehicle that has moved by ``moved`` (m) since the onset of a push along
+        ``n``, ``dt_ns`` ago, has left the structure: faster than it could slide along it
+        (``sustain_speed_mps``), or out along the normal (``sustain_normal_m``)."""
+        s = self.settings
+        reach = s.sustain_slack_m + s.sustain_speed_mps * dt_ns / 1e9
+        if float(np.linalg.norm(moved)) > reach:
+            return True
+        return s.sustain_normal_m > 0 and float(moved @ n) > s.sustain_normal_m
+
     def _contact_observations(
         self, ev: ContactEvent, on_row: int, close_row: int, f: ImpulseFeatures
     ) -> list[Observation]:
@@ -559,9 +570,8 @@ class ImpulseDetector:
             if not np.isfinite(pos).all():
                 self.stats.no_pose += 1
                 continue
-            reach = s.sustain_slack_m + s.sustain_speed_mps * (int(c.t[r]) - t_on) / 1e9
-            if np.isfinite(p_on).all() and float(np.linalg.norm(pos - p_on)) > reach:
-                self.stats.left_contact += len(rows) - k  # flown off: the rest is wind
+            if np.isfinite(p_on).all() and self._left(pos - p_on, n, int(c.t[r]) - t_on):
+                self.stats.left_contact += len(rows) - k  # flown off: the rest is not contact
                 break
             R = self._r_world(np.array([r]))[0] @ _C_FRD_FLU  # body FLU -> world ENU
             xc = pos + contact_offset(v, n, R, spread)

@@ -299,3 +299,46 @@ def test_a_push_stops_making_contacts_once_the_vehicle_has_flown_off():
     assert det_f.stats.left_contact == len(kept) - len(flown)
     spread = max(np.linalg.norm(np.asarray(o.position) - flown[0].position) for o in flown)
     assert spread < 0.3  # nothing laid along the flight path
+
+
+@pytest.mark.parametrize("normal_m", [0.05, 0.0])
+def test_a_push_stops_making_contacts_once_the_vehicle_moves_out_along_its_normal(normal_m):
+    # a long push (one event of ~1 s); the vehicle, still until the event opens, then moves at
+    # 0.3 m/s, well within the sliding reach: along the structure every 25 Hz sample is a
+    # contact; out along the event's normal it has left once it is 0.05 m out, and the rest
+    # would lie in free space (a MuJoCo dock touch's 1 s event followed the vehicle 0.7 m off
+    # a pillar)
+    always_true = Logistic(("log_peak_g",), (0.0,), (1.0,), (0.0,), -10.0)
+    model = EvidenceModel(always_true, always_true, "test")
+    t, f, q, pos = flight(impulses=[(3.0, 0.6, 6.0, (0.0, 1.0, 0.0))])
+    still = np.tile(pos[0], (t.size, 1))
+    (ev,) = run((t, f, q, still), model=model)[0].events
+    n = np.asarray(ev.normal)
+    tangent = np.cross(n, [0.0, 0.0, 1.0])
+    after = t >= ev.t_start_ns
+    dt = (t[after] - ev.t_start_ns) / 1e9
+
+    def moving(direction):
+        p = still.copy()
+        p[after] += 0.3 * dt[:, None] * (direction / np.linalg.norm(direction))
+        return (t, f, q, p)
+
+    settings = ContactSettings(sustain_normal_m=normal_m)
+    det_s, obs_s = run(moving(tangent), settings=settings, model=model)
+    det_o, obs_o = run(moving(n), settings=settings, model=model)
+    slid = [o for o in obs_s if o.label == LABEL_SURFACE]
+    out = [o for o in obs_o if o.label == LABEL_SURFACE]
+    assert len(det_s.events) == len(det_o.events) == 1
+    assert len(slid) >= 12 and det_s.stats.left_contact == 0
+    if normal_m:
+        assert 2 <= len(out) <= 6  # 0.05 m at 0.3 m/s: ~0.17 s of 25 Hz samples
+        assert det_o.stats.left_contact == len(slid) - len(out)
+        moved = max((np.asarray(o.position) - out[0].position) @ n for o in out)
+        assert moved <= normal_m + 1e-9
+    else:
+        assert len(out) == len(slid)
+
+
+def test_a_negative_normal_reach_is_refused():
+    with pytest.raises(ValueError, match="sustain_normal_m"):
+        ContactSettings(sustain_normal_m=-0.1)
