@@ -45,7 +45,7 @@ def detected_events(result: PipelineResult) -> list[DetectedEvent]:
             int(e.header.source_ns),
             e.payload["id"] in flagged,
             tuple(points.get(int(e.payload["id"]), ())),
-        )  # fmt: skip
+        )
         for e in result.events
         if e.payload["state"] == "begin"
     ]
