@@ -156,10 +156,10 @@ def markdown(comparison: Mapping[str, Any], overrides: Mapping[str, Sequence[str
             extra = {
                 "events: gusts flagged": lambda p: _share(p, "gust_events_flagged"),
                 "events: touches flagged": lambda p: _share(p, "touch_events_flagged"),
-                "... contact on the surface": lambda p: _share(
+                "events: touches placed on the surface flagged": lambda p: _share(
                     p, "touch_events_flagged_on_surface"
                 ),
-                "... contact mislocated (> 0.1 m)": lambda p: _share(
+                "events: touches placed > 0.1 m off it flagged": lambda p: _share(
                     p, "mislocated_touches_flagged"
                 ),
                 "events: flag precision": lambda p: _share(p, "fp_precision"),
