@@ -162,6 +162,7 @@ def markdown(comparison: Mapping[str, Any], overrides: Mapping[str, Sequence[str
                 "events: touches placed > 0.1 m off it flagged": lambda p: _share(
                     p, "mislocated_touches_flagged"
                 ),
+                "events: slow touches flagged": lambda p: _share(p, "slow_touch_events_flagged"),
                 "events: flag precision": lambda p: _share(p, "fp_precision"),
                 "events: touches detected": lambda p: _share(p, "detection_recall"),
                 "u-AUC gust vs touch": lambda p: fmt(p["u_auc"], ".2f"),

@@ -6,9 +6,10 @@ Pooled metrics (per variant, over its finished tasks)
 tasks that have it, its mean, median and worst (largest for errors, smallest for rates to
 maximise). ``shares``: event counts pooled over tasks (gust / touch events flagged, touch
 events flagged among those whose contacts lie on the surface and among the mislocated ones
-(``pipeline.scoring``), flag precision, touches detected). ``u_auc``: probability that a gust
-event's median contact u exceeds a touch event's. ``refit_s_median``: median over every refit
-of every task. ``task_wall_s``: mean / median / max wall time of one task (replay + outputs).
+(``pipeline.scoring``), slow touch events flagged, flag precision, touches detected).
+``u_auc``: probability that a gust event's median contact u exceeds a touch event's.
+``refit_s_median``: median over every refit of every task. ``task_wall_s``: mean / median /
+max wall time of one task (replay + outputs).
 
 A task record is ``{"status": "done" | "failed" | "missing", "report": report.json,
 "done": done.json, "error": text}`` (``pipeline.batch_outputs.read_record``).
@@ -165,6 +166,9 @@ def pool(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "mislocated_touches_flagged": counted(
             "mislocated_touches_flagged", lambda rep: rep.get("events_touch_mislocated")
         ),
+        "slow_touch_events_flagged": counted(
+            "slow_touch_events_flagged", lambda rep: rep.get("events_slow_touch")
+        ),
         "fp_precision": _share(total("events_flagged_false"), total("events_flagged")),
         "detection_recall": _share(
             total("detection_recall", "truth_touches"), total("truth_touches")
@@ -281,7 +285,8 @@ def summary_markdown(summary: Mapping[str, Any], title: str = "groundstation bat
     lines += ["| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
     pooled_keys = (
         "gust_events_flagged", "touch_events_flagged", "touch_events_flagged_on_surface",
-        "mislocated_touches_flagged", "fp_precision", "detection_recall",
+        "mislocated_touches_flagged", "slow_touch_events_flagged", "fp_precision",
+        "detection_recall",
     )  # fmt: skip
     for key in pooled_keys:
         row = []

@@ -237,6 +237,7 @@ def truth_rows(report: Mapping[str, Any]) -> list[tuple[str, str]]:
         ("touch_events_flagged_on_surface", "touch events flagged, of those placed on the surface"),
         ("events_touch_mislocated", "touch events placed > 0.1 m off the surface"),
         ("mislocated_touches_flagged", "touch events flagged, of those placed off it"),
+        ("slow_touch_events_flagged", "slow touch events (< 0.2 m/s) flagged"),
         ("fp_precision", "flag precision"),
         ("fp_recall", "flag recall"),
         ("detection_recall", "touches detected"),

@@ -46,6 +46,10 @@ Metrics (all distances in metres)
     keys split it: the number of mislocated touch events, the share of the other touches
     (contacts on the surface) that the map flags, and the share of the mislocated ones it
     flags. Events whose contact points are unknown count as on the surface.
+``slow_touch_events_flagged``, ``events_slow_touch``
+    The share of detected events matched to truth slow touches (under 0.2 m/s) that the map
+    flags, and their number. They are real contacts and their surface is touched surface, but
+    ``touch_events_flagged`` counts only ``touch`` events.
 ``fp_precision``, ``fp_recall``
     Detected contact events are matched to truth events by time: a detected event whose start
     lies in ``[start - 0.1 s, end + 0.3 s]`` of a truth event matches it (nearest start wins).
@@ -118,6 +122,9 @@ def false_positive_scores(
     ``mislocated_touches_flagged``
         Touch events whose contact points lie (median) more than ``mislocated_m`` from any real
         surface, the share of the other touch events flagged, and of the mislocated ones.
+    ``slow_touch_events_flagged``, ``events_slow_touch``
+        Share of detected events matched to truth slow touches that the map flags, and their
+        number.
     ``fp_precision``, ``fp_recall``, ``detection_recall`` and the counts behind them."""
     m = match_events(events, truth)
     false = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "gust"}
@@ -127,6 +134,7 @@ def false_positive_scores(
     tp = len(false & flagged)
     gusts = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "gust"}
     touched = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "touch"}
+    slow = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "slow_touch"}
     off = _mislocated([e for e in events if e.id in touched], truth, mislocated_m)
     on = touched - off
     return {
@@ -136,6 +144,8 @@ def false_positive_scores(
         "events_touch_mislocated": len(off),
         "touch_events_flagged_on_surface": len(on & flagged) / len(on) if on else math.nan,
         "mislocated_touches_flagged": len(off & flagged) / len(off) if off else math.nan,
+        "slow_touch_events_flagged": len(slow & flagged) / len(slow) if slow else math.nan,
+        "events_slow_touch": len(slow),
         "fp_precision": tp / len(flagged) if flagged else math.nan,
         "fp_recall": tp / len(false) if false else math.nan,
         "detection_recall": len(found & set(touches)) / len(touches) if touches else math.nan,

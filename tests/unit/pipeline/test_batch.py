@@ -157,6 +157,16 @@ def test_pool_splits_touch_flags_by_where_the_contacts_lie():
     assert (off["num"], off["den"]) == (1, 1)
 
 
+def test_pool_counts_slow_touch_flags_over_the_reports_that_have_them():
+    a = _record(0.1, 3, 2, 2)
+    a["report"].update(events_slow_touch=4, slow_touch_events_flagged=0.25)
+    b = _record(0.1, 3, 2, 2)
+    b["report"].update(events_slow_touch=0, slow_touch_events_flagged=None)
+    older = _record(0.1, 3, 2, 2)  # a report from before slow touches were scored
+    s = pool([a, b, older])["shares"]["slow_touch_events_flagged"]
+    assert (s["num"], s["den"], s["share"]) == (1, 4, 0.25)
+
+
 def test_summary_lists_every_variant_log_and_failure():
     plan = plan_batch([A, B], [Variant("base"), Variant("low", ("contact.threshold_g=1.0",))],
                       resolve)  # fmt: skip

@@ -115,3 +115,23 @@ def test_touches_placed_off_the_surface_are_counted_apart_from_those_on_it():
     assert loose["events_touch_mislocated"] == 0
     assert loose["touch_events_flagged_on_surface"] == 0.5
     assert np.isnan(loose["mislocated_touches_flagged"])
+
+
+def test_slow_touches_are_scored_apart_from_touches_and_gusts():
+    import numpy as np
+
+    from groundstation.pipeline.scoring import DetectedEvent, false_positive_scores
+
+    # a touch, two slow touches (one flagged) and a gust: the slow touches are real contacts
+    # but not ``touch`` events, so they get their own share and leave the others as they are
+    kinds = [("touch", 1.0), ("slow_touch", 2.0), ("slow_touch", 3.0), ("gust", 4.0)]
+    truth = {"contacts": [{"kind": k, "start": t, "end": t + 0.3} for k, t in kinds]}
+    flagged = [False, True, False, True]
+    events = [DetectedEvent(i, int(t * 1e9), flagged=f) for i, ((_, t), f) in
+              enumerate(zip(kinds, flagged, strict=True))]  # fmt: skip
+    s = false_positive_scores(events, truth)
+    assert s["events_slow_touch"] == 2 and s["slow_touch_events_flagged"] == 0.5
+    assert s["touch_events_flagged"] == 0.0 and s["gust_events_flagged"] == 1.0
+    assert s["fp_precision"] == 0.5  # the flagged slow touch is a wrong flag
+    none = false_positive_scores(events[:1], truth)
+    assert none["events_slow_touch"] == 0 and np.isnan(none["slow_touch_events_flagged"])
