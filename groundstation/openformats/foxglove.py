@@ -300,8 +300,9 @@ class FoxgloveTranslator:
             ev = _pb("foxglove.Event")()
             ev.start_time.FromNanoseconds(int(start))
             ev.end_time.FromNanoseconds(int(src))
-            for key, value in (("id", ev_id), ("peak_g", f"{peak:.3f}"), ("position_m", _fmt3(pos)),
-                               ("normal", _fmt3(normal))):  # fmt: skip
+            kind = "rejected" if state == "rejected" else "contact"
+            for key, value in (("id", ev_id), ("state", kind), ("peak_g", f"{peak:.3f}"),
+                               ("position_m", _fmt3(pos)), ("normal", _fmt3(normal))):  # fmt: skip
                 ev.metadata.add(key=key, value=str(value))
             if p_false is not None:
                 ev.metadata.add(key="p_false", value=f"{float(p_false):.4f}")

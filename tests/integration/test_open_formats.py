@@ -90,6 +90,18 @@ def decode_foxglove(path: Path) -> dict[str, Counter]:
     return counts
 
 
+def event_states(path: Path) -> Counter:
+    """``state`` metadata of the ``/detector/events`` Events of a recording."""
+    from foxglove_schemas_protobuf.Event_pb2 import Event
+
+    out: Counter = Counter()
+    with open(path, "rb") as fh:
+        for _s, _c, msg in make_reader(fh).iter_messages(topics=["/detector/events"]):
+            meta = {m.key: m.value for m in Event.FromString(msg.data).metadata}
+            out[meta.get("state")] += 1
+    return out
+
+
 def test_replay_outputs_of_every_bundled_log_decode_with_the_schema_library_alone(replayed):
     from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
     from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
@@ -100,7 +112,10 @@ def test_replay_outputs_of_every_bundled_log_decode_with_the_schema_library_alon
         for topic, schema in REQUIRED.items():
             assert counts.get(topic, {}).get(schema, 0) > 0, (stem, topic, counts.get(topic))
         report = json.loads((d / "report.json").read_text())
-        assert counts["/detector/events"]["foxglove.Event"] <= report["contacts"]
+        states = event_states(d / "replay.mcap")
+        assert states["contact"] == report["contacts"]  # one Event per contact event
+        assert set(states) <= {"contact", "rejected"}
+        assert counts["/detector/events"]["foxglove.Event"] == sum(states.values())
         with open(d / "replay.mcap", "rb") as fh:
             last = {}
             for _s, ch, msg in make_reader(fh).iter_messages(topics=["/map/mesh", "/map/contacts"]):
