@@ -361,31 +361,23 @@ MOCAP_INPUTS = (
     "approach", "rebound", "reversal", "agreement", "log_dv_per_approach",
 )  # fmt: skip
 IMU_INPUTS = ("log_duration_ms", "log_dv_imu", "log_peak_g", "axial_fraction")
-#: Truth kinds the evidence model learns as real contacts.
-REAL_KINDS = ("touch", "slow_touch")
 
 
 def fit_evidence_model(events: Sequence[LabelledEvent], provenance: str, c: float = 0.3) -> Any:
-    """Logistic models (with mocap, IMU only) fitted on labelled candidates: touches and slow
-    touches (under 0.2 m/s) are true (0), gusts and candidates that match nothing are false (1);
-    ground contacts are left out (a gust pressing the drone onto the floor: real surface, but
-    not what the map is built from). Classes are weighted equally, so ``p_false`` is calibrated
-    for a one-to-one prior.
-
-    Slow touches used to be left out. That model never saw a real contact that is weak, with
-    little approach and rebound, and gave 24 % of the slow touches of the reported seeds
-    100-101 ``p_false`` > 0.5 (5 % once they are in), while the map builds from them and the
-    touched surface includes theirs."""
+    """Logistic models (with mocap, IMU only) fitted on labelled candidates: touches are true
+    (0), gusts and candidates that match nothing are false (1); slow touches and ground contacts
+    are left out (real contacts, but not the touches the map is built from). Classes are
+    weighted equally, so ``p_false`` is calibrated for a one-to-one prior."""
     from sklearn.linear_model import LogisticRegression
 
     from groundstation.contact.evidence import EvidenceModel, Logistic
 
-    rows = [(ev, _inputs(ev)) for ev in events if ev.kind in (*REAL_KINDS, "gust", "none")]
+    rows = [(ev, _inputs(ev)) for ev in events if ev.kind in ("touch", "gust", "none")]
     rows = [(ev, z) for ev, z in rows if z is not None]
     blocks = {}
     for key, names in (("with_mocap", MOCAP_INPUTS), ("imu_only", IMU_INPUTS)):
         usable = [(ev, z) for ev, z in rows if all(k in z for k in names)]
-        y = np.array([0 if ev.kind in REAL_KINDS else 1 for ev, _ in usable])
+        y = np.array([0 if ev.kind == "touch" else 1 for ev, _ in usable])
         if len(set(y.tolist())) < 2:
             raise BenchDataError(f"cannot fit the evidence model ({key}): need touches and gusts")
         X = np.array([[z[k] for k in names] for _, z in usable])
