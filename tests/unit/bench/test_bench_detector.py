@@ -57,6 +57,10 @@ def test_summarize_rates_by_speed_and_force():
         _event("gust", 0.2, force_n=8.0),
         _event("none", 0.95),
         _event("none", 0.1),
+        _event("slow_touch", 0.6, speed_mps=0.15),
+        _event("slow_touch", 0.3, speed_mps=0.1),
+        _event("slow_touch", 0.2, speed_mps=0.1),
+        _event("slow_touch", 0.1, speed_mps=0.15),
     ]
     items = [
         db.TruthItem("f", "simple", "touch", True, 0.25),
@@ -71,6 +75,7 @@ def test_summarize_rates_by_speed_and_force():
     assert s["recall_ge_0.3"] == 0.5
     assert s["speed_bins"]["0.2-0.3"] == {"touches": 1, "recall": 1.0, "p_false_gt": 0.0}
     assert s["touches_p_false_gt"] == 0.5
+    assert s["slow_touches_p_false_gt"] == 0.25  # one of four lost to the map's prior
     assert s["gusts_p_false_gt_of_detected"] == 0.5
     # one gust flagged and one never detected, of three
     assert s["gusts_not_contacts_of_all"] == pytest.approx(2 / 3)
@@ -81,6 +86,7 @@ def test_summarize_rates_by_speed_and_force():
     assert s["placement_surface_median_m"] == pytest.approx(0.005)
     text = db.markdown({"variants": {"v": {"engines": {"simple": s}, "real": None}}})
     assert "| simple | 3 (2) | 0.500 |" in text
+    assert "| 0.500 | 0.250 | 1.00 | 1 of 2 |" in text  # touches, slow touches, unmatched kept
 
 
 def test_rejected_events_count_as_false():
