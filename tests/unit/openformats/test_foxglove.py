@@ -170,6 +170,9 @@ def test_signal_threshold_and_events_are_plottable_and_logs_keep_their_level():
     for t, state, peak in ((100_000_000, "begin", 1.6), (150_000_000, "end", 2.04)):
         payload = {"id": 3, "state": state, "peak_g": peak}
         out += tr.translate(env("contact.event", t, payload, where))
+    # a candidate rejected at the source (p_false above 0.98): one instant, told apart
+    rejected = {"id": 4, "state": "rejected", "peak_g": 1.3, "p_false": 0.995}
+    out += tr.translate(env("contact.event", 200_000_000, rejected, where))
     out += tr.translate(env("log", 7, {"process": "link", "level": "error", "message": "LINK LOST",
                                        "hint": "check the cable"}, {}))  # fmt: skip
     out += tr.finish()
@@ -180,14 +183,18 @@ def test_signal_threshold_and_events_are_plottable_and_logs_keep_their_level():
     g = np.array([v.x for v in sig])
     assert g[:19].max() < 1e-9 and g.max() == pytest.approx(20.0 / 9.80665, rel=1e-6)
     peaks = [Vector3.FromString(m.data) for m in got["/detector/event_peak"]]
-    assert [(p.x, p.y, p.z) for p in peaks] == [(1.6, 3.0, 1.0), (2.04, 3.0, 0.0)]
+    assert [(p.x, p.y, p.z) for p in peaks][:2] == [(1.6, 3.0, 1.0), (2.04, 3.0, 0.0)]
     from foxglove_schemas_protobuf.Event_pb2 import Event
 
-    (ev,) = [Event.FromString(m.data) for m in got["/detector/events"]]
+    ev, rej = [Event.FromString(m.data) for m in got["/detector/events"]]
     assert (
         ev.start_time.ToNanoseconds() == 100_000_000 and ev.end_time.ToNanoseconds() == 150_000_000
     )
-    assert {kv.key: kv.value for kv in ev.metadata}["peak_g"] == "2.040"
+    meta = {kv.key: kv.value for kv in ev.metadata}
+    assert meta["peak_g"] == "2.040" and meta["state"] == "contact"
+    assert rej.start_time.ToNanoseconds() == rej.end_time.ToNanoseconds() == 200_000_000
+    meta = {kv.key: kv.value for kv in rej.metadata}
+    assert (meta["state"], meta["id"], meta["p_false"]) == ("rejected", "4", "0.9950")
     logs = [Log.FromString(m.data) for m in got["/log"]]
     err = [x for x in logs if x.name == "link"][0]
     assert (
