@@ -30,8 +30,8 @@ impulse is integrated in the world frame (its direction is the outward normal ``
 tilts it on oblique touches), its onset found by walking back from the peak to 15 % of it, and
 once ``evidence_window_s`` more of data has arrived the evidence of
 :mod:`groundstation.contact.evidence` is measured (duration, impulse, mocap approach and rebound
-speeds, their agreement with the IMU) and :class:`~groundstation.contact.evidence.EvidenceModel`
-turns it into ``p_false``.
+speeds, their agreement with the IMU, how fast the vehicle was turning before the onset) and
+:class:`~groundstation.contact.evidence.EvidenceModel` turns it into ``p_false``.
 
 Observations
 ------------
@@ -443,6 +443,22 @@ class ImpulseDetector:
         a, b = self._position_at(t_from), self._position_at(t_to)
         return (b - a) / ((t_to - t_from) / 1e9)
 
+    def _turn_rate(self, t_from: int, t_to: int) -> float:
+        """Mean angular speed (rad/s) over [t_from, t_to]: the rotation angles between
+        consecutive attitudes summed over the time they span (NaN: fewer than two rows)."""
+        c = self._c
+        t = c.t[: c.n]
+        a = int(np.searchsorted(t, t_from, side="left"))
+        b = int(np.searchsorted(t, t_to, side="right"))
+        if b - a < 2:
+            return math.nan
+        q = c.q[a:b]
+        q = q / np.linalg.norm(q, axis=1, keepdims=True)
+        dots = np.abs(np.einsum("ij,ij->i", q[1:], q[:-1]))
+        angle = 2.0 * np.arccos(np.clip(dots, 0.0, 1.0))
+        span = (int(t[b - 1]) - int(t[a])) / 1e9
+        return float(angle.sum() / span) if span > 0 else math.nan
+
     def _close(self, ev: _Open, i_close: int) -> None:
         """Geometry of an impulse that ended: direction, peak, onset, end, impulse."""
         c = self._c
@@ -504,6 +520,7 @@ class ImpulseDetector:
         v_after = self._velocity(cl.t_imp_end + gap, cl.t_imp_end + gap + win)
         approach = float(-(v_before @ n))
         rebound = float(v_after @ n)
+        turn_rate = self._turn_rate(t_on - gap - win, t_on - gap)
         feats = ImpulseFeatures(
             peak_g=cl.peak / G,
             score=cl.peak_score,
@@ -513,6 +530,7 @@ class ImpulseDetector:
             approach_mps=approach,
             rebound_mps=rebound,
             agreement=(approach + rebound) / cl.dv_imu if cl.dv_imu > 1e-6 else math.nan,
+            turn_rate_radps=turn_rate,
         )
         p_false = self.model.p_false(feats)
         rejected = not p_false < s.reject_p_false

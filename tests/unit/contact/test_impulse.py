@@ -270,6 +270,43 @@ def test_model_inputs_and_probability():
     assert lg.probability({"log_duration_ms": 5.0}) > 0.95
 
 
+def test_a_missing_input_counts_as_its_training_mean():
+    lg = Logistic(("log_duration_ms", "log_turn_rate"), (3.0, -1.0), (1.0, 1.0), (2.0, 1.5), 0.3)
+    assert lg.probability({"log_duration_ms": 4.0}) == pytest.approx(
+        lg.probability({"log_duration_ms": 4.0, "log_turn_rate": -1.0})
+    )
+    no_rate = ImpulseFeatures(2.0, 2.5, 0.03, 0.42, 0.1)
+    assert "log_turn_rate" not in model_inputs(no_rate)
+    fast = model_inputs(ImpulseFeatures(2.0, 2.5, 0.03, 0.42, 0.1, turn_rate_radps=40.0))
+    still = model_inputs(ImpulseFeatures(2.0, 2.5, 0.03, 0.42, 0.1, turn_rate_radps=0.0))
+    assert fast["log_turn_rate"] == pytest.approx(math.log(3.0))  # capped
+    assert still["log_turn_rate"] == pytest.approx(math.log(0.3))  # floored
+
+
+def turning_before(data, t_stop, rate, t_start):
+    """``data`` with the vehicle yawing at ``rate`` rad/s over [t_start, t_stop] s (flight time)
+    and still before and after; specific force is unchanged while the velocity is constant."""
+    t, f, q, pos = data
+    ts = (t - t[0]) / 1e9
+    yaw_end = 0.0
+    yaw = yaw_end - rate * np.clip(t_stop - ts, 0.0, t_stop - t_start)
+    q = np.array([quat_from_axis_angle([0.0, 0.0, 1.0], float(y)) for y in yaw])
+    return t, f, q, pos
+
+
+@pytest.mark.parametrize("rate", [0.8, 2.0])
+def test_the_turn_rate_before_the_onset_is_measured_from_the_attitude(rate):
+    steady, _ = run(flight(**touch(speed=0.3)))
+    assert steady.events[0].features.turn_rate_radps == pytest.approx(0.0, abs=1e-6)
+    turned = turning_before(flight(**touch(speed=0.3)), 2.99, rate, 2.0)
+    det, _ = run(turned)
+    assert len(det.events) == 1
+    assert det.events[0].features.turn_rate_radps == pytest.approx(rate, rel=0.05)
+    # a turn that ended well before the window is not counted
+    det, _ = run(turning_before(flight(**touch(speed=0.3)), 2.5, rate, 2.0))
+    assert det.events[0].features.turn_rate_radps == pytest.approx(0.0, abs=1e-6)
+
+
 def test_the_bundled_evidence_model_loads_and_bad_files_are_named(tmp_path):
     EvidenceModel.load()
     bad = tmp_path / "m.json"
