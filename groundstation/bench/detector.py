@@ -361,33 +361,66 @@ def _inputs(ev: LabelledEvent) -> dict[str, float] | None:
 
 MOCAP_INPUTS = (
     "log_duration_ms", "log_dv_imu", "log_peak_g", "axial_fraction",
-    "approach", "rebound", "reversal", "agreement", "log_dv_per_approach",
+    "approach", "rebound", "reversal", "agreement", "log_dv_per_approach", "log_turn_rate",
 )  # fmt: skip
-IMU_INPUTS = ("log_duration_ms", "log_dv_imu", "log_peak_g", "axial_fraction")
+IMU_INPUTS = ("log_duration_ms", "log_dv_imu", "log_peak_g", "axial_fraction", "log_turn_rate")
+
+
+#: Truth kinds the evidence model learns as real contacts.
+REAL_KINDS = ("touch", "slow_touch")
+#: Share of the false class's weight given to candidates that match no contact (braking, turns).
+UNMATCHED_SHARE = 0.15
+
+
+def training_weights(kinds: Sequence[str]) -> np.ndarray:
+    """Per-candidate weights for the evidence model's fit: the two classes weigh the same (so
+    ``p_false`` is calibrated for a one-to-one prior), and within the false class candidates
+    that match no contact weigh ``UNMATCHED_SHARE`` of it (when there are any).
+
+    The training flights hold about fifty gusts per braking false alarm: weighted by count, the
+    fit all but ignores the false alarms, and those are what draws phantom surface in open air
+    (a MuJoCo free flight kept two of them and drew 0.49 m^2 1.5 m from any structure, 9c3abdc).
+    """
+    k = np.asarray(kinds)
+    real = np.isin(k, REAL_KINDS)
+    none = k == "none"
+    w = np.ones(k.size)
+    n_none, n_other = int(none.sum()), int((~real & ~none).sum())
+    if n_none and n_other:
+        w[none] = UNMATCHED_SHARE * n_other / ((1.0 - UNMATCHED_SHARE) * n_none)
+    for cls in (real, ~real):
+        if cls.any():
+            w[cls] *= k.size / (2.0 * w[cls].sum())
+    return w
 
 
 def fit_evidence_model(events: Sequence[LabelledEvent], provenance: str, c: float = 0.3) -> Any:
-    """Logistic models (with mocap, IMU only) fitted on labelled candidates: touches are true
-    (0), gusts and candidates that match nothing are false (1); slow touches and ground contacts
-    are left out (real contacts, but not the touches the map is built from). Classes are
-    weighted equally, so ``p_false`` is calibrated for a one-to-one prior."""
+    """Logistic models (with mocap, IMU only) fitted on labelled candidates: touches and slow
+    touches (under 0.2 m/s) are true (0), gusts and candidates that match nothing are false (1);
+    ground contacts are left out (a gust pressing the drone onto the floor: real surface, but
+    not what the map is built from). Weighted by :func:`training_weights`.
+
+    Slow touches used to be left out: that model never saw a weak real contact and gave a
+    fifth of the slow touches ``p_false`` > 0.5. Putting them in without ``log_turn_rate``
+    (9c3abdc, reverted) let weak braking false alarms through with them; the vehicle's
+    rotation before the onset is what tells those two apart."""
     from sklearn.linear_model import LogisticRegression
 
     from groundstation.contact.evidence import EvidenceModel, Logistic
 
-    rows = [(ev, _inputs(ev)) for ev in events if ev.kind in ("touch", "gust", "none")]
+    rows = [(ev, _inputs(ev)) for ev in events if ev.kind in (*REAL_KINDS, "gust", "none")]
     rows = [(ev, z) for ev, z in rows if z is not None]
     blocks = {}
     for key, names in (("with_mocap", MOCAP_INPUTS), ("imu_only", IMU_INPUTS)):
         usable = [(ev, z) for ev, z in rows if all(k in z for k in names)]
-        y = np.array([0 if ev.kind == "touch" else 1 for ev, _ in usable])
+        y = np.array([0 if ev.kind in REAL_KINDS else 1 for ev, _ in usable])
         if len(set(y.tolist())) < 2:
             raise BenchDataError(f"cannot fit the evidence model ({key}): need touches and gusts")
         X = np.array([[z[k] for k in names] for _, z in usable])
         mu, sd = X.mean(axis=0), X.std(axis=0)
         sd = np.where(sd > 1e-9, sd, 1.0)
-        clf = LogisticRegression(C=c, max_iter=1000, class_weight="balanced")
-        clf.fit((X - mu) / sd, y)
+        clf = LogisticRegression(C=c, max_iter=2000)
+        clf.fit((X - mu) / sd, y, sample_weight=training_weights([ev.kind for ev, _ in usable]))
         blocks[key] = Logistic(
             tuple(names), tuple(mu.tolist()), tuple(sd.tolist()),
             tuple(clf.coef_[0].tolist()), float(clf.intercept_[0]),

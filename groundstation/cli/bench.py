@@ -161,8 +161,10 @@ def run_detector(args: argparse.Namespace) -> int:
             f"groundstation bench detector --train: engines {','.join(engines)}, train seeds "
             f"{args.train_seeds}, {len(specs)} flights, "
             f"{sum(e.kind == 'touch' for e in events)} touches, "
+            f"{sum(e.kind == 'slow_touch' for e in events)} slow touches, "
             f"{sum(e.kind == 'gust' for e in events)} gusts, "
-            f"{sum(e.kind == 'none' for e in events)} unmatched candidates"
+            f"{sum(e.kind == 'none' for e in events)} unmatched candidates "
+            f"(weighted to {db.UNMATCHED_SHARE:.0%} of the false class)"
         )
         model = db.fit_evidence_model(events, provenance)
         model_path = out / "evidence_model.json"

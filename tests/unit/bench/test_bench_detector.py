@@ -105,7 +105,8 @@ def test_real_flight_rates():
 
 
 def _features(rng, gust: bool) -> dict:
-    """Separable synthetic evidence: gusts push without an approach and do not rebound."""
+    """Separable synthetic evidence: gusts push without an approach, do not rebound, and come to
+    a turning vehicle."""
     return {
         "peak_g": float(rng.uniform(0.5, 2.0)),
         "score": float(rng.uniform(1.0, 3.0)),
@@ -115,13 +116,16 @@ def _features(rng, gust: bool) -> dict:
         "approach_mps": float(rng.uniform(0.0, 0.05) if gust else rng.uniform(0.2, 1.0)),
         "rebound_mps": float(rng.uniform(0.0, 0.05) if gust else rng.uniform(0.1, 0.5)),
         "agreement": float(rng.uniform(-0.2, 0.3) if gust else rng.uniform(0.6, 1.0)),
+        "turn_rate_radps": float(rng.uniform(0.2, 2.0) if gust else rng.uniform(0.0, 0.15)),
     }
 
 
 def test_fit_evidence_model_separates_and_round_trips(tmp_path):
     rng = np.random.default_rng(0)
     events = [
-        db.LabelledEvent("f", "simple", kind, math.nan, _features(rng, kind != "touch"), False)
+        db.LabelledEvent(
+            "f", "simple", kind, math.nan, _features(rng, kind in ("gust", "none")), False
+        )
         for kind in ["touch"] * 60 + ["gust"] * 40 + ["none"] * 10 + ["slow_touch"] * 5
     ]
     model = db.fit_evidence_model(events, "unit test")
@@ -136,6 +140,19 @@ def test_fit_evidence_model_separates_and_round_trips(tmp_path):
     assert p_touch < 0.2 < 0.8 < p_gust
     with pytest.raises(db.BenchDataError, match="touches and gusts"):
         db.fit_evidence_model([e for e in events if e.kind == "touch"], "x")
+
+
+def test_training_weights_balance_the_classes_and_give_false_alarms_their_share():
+    kinds = ["touch"] * 50 + ["slow_touch"] * 10 + ["gust"] * 95 + ["none"] * 5
+    w = db.training_weights(kinds)
+    k = np.array(kinds)
+    real = np.isin(k, db.REAL_KINDS)
+    assert w[real].sum() == pytest.approx(w[~real].sum())
+    assert w[k == "none"].sum() / w[~real].sum() == pytest.approx(db.UNMATCHED_SHARE)
+    assert w.sum() == pytest.approx(len(kinds))
+    assert np.allclose(w[real], w[0])  # a slow touch weighs as much as a touch
+    no_none = db.training_weights(["touch"] * 3 + ["gust"])
+    assert no_none.tolist() == pytest.approx([2 / 3, 2 / 3, 2 / 3, 2.0])
 
 
 def test_variant_parse():

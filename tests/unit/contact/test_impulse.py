@@ -307,6 +307,17 @@ def test_the_turn_rate_before_the_onset_is_measured_from_the_attitude(rate):
     assert det.events[0].features.turn_rate_radps == pytest.approx(0.0, abs=1e-6)
 
 
+def test_the_bundled_model_doubts_an_impulse_that_came_to_a_turning_vehicle():
+    model = EvidenceModel.load()
+    assert "log_turn_rate" in model.with_mocap.names and "log_turn_rate" in model.imu_only.names
+    weak = dict(peak_g=1.1, score=1.3, duration_s=0.035, dv_imu_mps=0.35, axial_fraction=0.3)
+    touch = dict(approach_mps=0.15, rebound_mps=0.05, agreement=0.6)
+    for extra in (touch, {}):  # with mocap, and from the IMU alone
+        steady = model.p_false(ImpulseFeatures(**weak, **extra, turn_rate_radps=0.05))
+        braking = model.p_false(ImpulseFeatures(**weak, **extra, turn_rate_radps=2.0))
+        assert braking > steady + 0.1
+
+
 def test_the_bundled_evidence_model_loads_and_bad_files_are_named(tmp_path):
     EvidenceModel.load()
     bad = tmp_path / "m.json"
