@@ -41,8 +41,8 @@ from groundstation.errors import ConfigError
 BUNDLED_MODEL = Path(__file__).with_name("evidence_model.json")
 #: ``turn_rate_radps`` below the floor is steady flight, above the cap a manoeuvre however fast.
 #: The SITL's touches come at 0.06 rad/s (median; q90 0.15), its braking false alarms at 2.2
-#: (q10 1.25). A real airframe wobbles more: the DJI of ``aggressive_flight`` (real gyro, 120 Hz,
-#: 100 ms means) never flew under 0.15 rad/s in one window in ten, so the floor sits well above
+#: (q10 1.25). A real airframe wobbles more: the DJI of ``aggressive_flight`` (real gyro, 120 Hz)
+#: turns faster than 0.15 rad/s in nine 100 ms windows out of ten, so the floor sits well above
 #: the SITL's calm, and a touch from a real vehicle's steady flight reads as steady.
 TURN_RATE_FLOOR_RADPS = 0.3
 TURN_RATE_CAP_RADPS = 3.0
@@ -110,7 +110,7 @@ def model_inputs(f: ImpulseFeatures) -> dict[str, float]:
         "axial_fraction": f.axial_fraction,
     }
     if math.isfinite(f.turn_rate_radps):
-        # floored at attitude-estimate jitter, capped where every flight manoeuvre has arrived
+        # floored at a real airframe's steady wobble, capped where any manoeuvre is obvious
         z["log_turn_rate"] = math.log(
             float(np.clip(f.turn_rate_radps, TURN_RATE_FLOOR_RADPS, TURN_RATE_CAP_RADPS))
         )

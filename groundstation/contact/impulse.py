@@ -452,9 +452,9 @@ class ImpulseDetector:
         b = int(np.searchsorted(t, t_to, side="right"))
         if b - a < 2:
             return math.nan
-        q = c.q[a:b]
-        q = q / np.linalg.norm(q, axis=1, keepdims=True)
-        dots = np.abs(np.einsum("ij,ij->i", q[1:], q[:-1]))
+        with np.errstate(invalid="ignore", divide="ignore"):  # a zero quaternion: NaN
+            q = c.q[a:b] / np.linalg.norm(c.q[a:b], axis=1, keepdims=True)
+            dots = np.abs(np.einsum("ij,ij->i", q[1:], q[:-1]))
         angle = 2.0 * np.arccos(np.clip(dots, 0.0, 1.0))
         span = (int(t[b - 1]) - int(t[a])) / 1e9
         return float(angle.sum() / span) if span > 0 else math.nan

@@ -288,8 +288,7 @@ def turning_before(data, t_stop, rate, t_start):
     and still before and after; specific force is unchanged while the velocity is constant."""
     t, f, q, pos = data
     ts = (t - t[0]) / 1e9
-    yaw_end = 0.0
-    yaw = yaw_end - rate * np.clip(t_stop - ts, 0.0, t_stop - t_start)
+    yaw = -rate * np.clip(t_stop - ts, 0.0, t_stop - t_start)  # ends at the flight's yaw, 0
     q = np.array([quat_from_axis_angle([0.0, 0.0, 1.0], float(y)) for y in yaw])
     return t, f, q, pos
 
