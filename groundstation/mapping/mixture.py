@@ -157,12 +157,17 @@ class Groups:
         Burst index of each group (groups of one burst are left out together).
     extra_llr : (G,) float64
         Further log likelihood ratios (false vs true) from outside the GP.
+    companion : (n,) int64, optional
+        For a trusted row (``row_group`` -1), the group it is left out with when that group's
+        burst is tested, -1 for none: the vehicle's own free-space samples at a contact event
+        (``mapping/training.py``). It stays in the fit with its own precision.
     """
 
     row_group: np.ndarray
     prior_false: np.ndarray
     burst: np.ndarray
     extra_llr: np.ndarray
+    companion: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         g = self.prior_false.shape[0]
@@ -172,6 +177,12 @@ class Groups:
             )
         if self.row_group.size and self.row_group.max(initial=-1) >= g:
             raise InputDataError("groups: a row refers to a group that does not exist")
+        if self.companion is not None:
+            c = self.companion
+            if c.shape != self.row_group.shape or (c.size and c.max(initial=-1) >= g):
+                raise InputDataError("groups: companion needs one group (or -1) per row")
+            if np.any((c >= 0) & (self.row_group >= 0)):
+                raise InputDataError("groups: a row of a group cannot be another's companion")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -498,8 +509,11 @@ class EventMixtureGPIS:
 
     @staticmethod
     def _burst_rows(groups: Groups) -> list[np.ndarray]:
-        """Row indices of each burst (bursts of groups that have rows)."""
+        """Row indices of each burst (bursts of groups that have rows), with the companions
+        of its groups."""
         rg = groups.row_group
+        if groups.companion is not None:
+            rg = np.where(rg >= 0, rg, groups.companion)
         rows = np.flatnonzero(rg >= 0)
         if rows.size == 0:
             return []
@@ -531,9 +545,9 @@ class EventMixtureGPIS:
                 Cb = np.linalg.pinv(Pbb)
             e = Cb @ a[rows]  # y_B - E[y_B | rest]
             V = Cb - np.diag(1.0 / w[rows])  # latent predictive covariance of f_B | rest
-            g_rows = rg[rows]
+            g_rows = rg[rows]  # companions are -1: left out with the burst, not its evidence
             val = is_val[rows]
-            for g in np.unique(g_rows):
+            for g in np.unique(g_rows[g_rows >= 0]):
                 k = np.flatnonzero((g_rows == g) & val)  # slopes are not label residuals
                 if k.size == 0:
                     continue

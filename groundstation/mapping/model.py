@@ -108,7 +108,13 @@ def training_policy(
         plane_noise_per_m=mapping.plane_noise_per_m,
         plane_max_p_false=mapping.plane_max_p_false,
         settled_voxel_m=mapping.settled_voxel_m,
+        companion_s=mapping.companion_s,
     )
+
+
+def _or_none(a: np.ndarray | None) -> np.ndarray:
+    """``a``, or an empty array for None (a tile signature hashes arrays)."""
+    return np.zeros(0, dtype=np.int64) if a is None else a
 
 
 @dataclasses.dataclass(frozen=True)
@@ -237,11 +243,16 @@ class SurfaceModel:
         gidx = np.unique(rg[rg >= 0])
         local = np.full(ts.groups.prior_false.size, -1, dtype=np.int64)
         local[gidx] = np.arange(gidx.size)
+        comp = ts.groups.companion
+        if comp is not None:
+            comp = comp[rows]
+            comp = np.where(comp >= 0, local[np.maximum(comp, 0)], -1)  # -1: group not here
         groups = Groups(
             row_group=np.where(rg >= 0, local[np.maximum(rg, 0)], -1),
             prior_false=ts.groups.prior_false[gidx],
             burst=ts.groups.burst[gidx],
             extra_llr=ts.groups.extra_llr[gidx],
+            companion=comp,
         )
         return (
             ts.X[rows],
@@ -298,7 +309,8 @@ class SurfaceModel:
                 continue  # no surface can be drawn in this core from its rows
             X, y, s2, V, groups, st, gidx = self._subset(ts, rows, start)
             sig = signature(X, y, s2, V, groups.row_group, np.round(groups.prior_false, 4),
-                            groups.burst, groups.extra_llr, decided[gidx])  # fmt: skip
+                            groups.burst, groups.extra_llr, decided[gidx],
+                            _or_none(groups.companion))  # fmt: skip
             old = self._tiles.get(key)
             if old is not None and old.signature == sig:  # same data; rows renumbered since
                 fitted[key] = dataclasses.replace(old, rows=rows, gidx=gidx)

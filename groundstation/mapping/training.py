@@ -6,6 +6,19 @@
   points (y = +1) are thinned to one per ``free_voxel_m`` voxel (the first one seen, so a row
   never changes once chosen): the path flown is dense where the vehicle lingers, and a free
   point per voxel is all the potential needs.
+- **The vehicle at a contact.** A free sample is the vehicle's centre, +1 a clearance of
+  about ``1 / slope`` (0.2 m at the default slope of 5 per metre). The centre of a body in
+  contact is only the body's extent from the contact: 0.05 m above the top of a box the
+  vehicle sits on. Such a sample is what the detector's geometry puts in front of *any*
+  contact it places, true or false, so it is no evidence about which the event is; but as
+  +1 a few centimetres from a 0 it bent the field so steeply that the rest of the data took
+  real touches on horizontal faces for outliers. A free sample taken within ``companion_s``
+  of an event, in front of its contact plane and within the body's reach of its contacts, is
+  that event's *companion*: left out with the event's burst when the mixture tests it
+  (``Groups.companion``), kept in the fit (it is true free space either way). Samples behind
+  the plane are not companions: they are evidence against the contact.
+  (``TrainingPolicy.companion_s`` defaults to 0, none; the map's default is
+  ``MappingSettings.companion_s``.)
 - **Noise.** A contact or internal row's variance is ``contact_noise^2 + (slope * sigma_m)^2``
   (``sigma_m``: the detector's placement uncertainty in metres; ``slope``: the potential's change
   per metre, from 0 at the surface to ``inside_value`` at ``d_in`` behind it); a free row's is
@@ -111,6 +124,7 @@ class TrainingPolicy:
     plane_noise_per_m: float = 0.5
     plane_max_p_false: float = 1.0
     settled_voxel_m: float = 0.1
+    companion_s: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -382,6 +396,14 @@ def build_training_set(
     np.minimum.at(t_lo, g_of, col.t[shape])
     np.maximum.at(t_hi, g_of, col.t[shape])
     t_span = list(zip(t_lo.tolist(), t_hi.tolist(), strict=True))
+    n_rows = sum(len(x) for x in rows_X)
+    companion = None
+    if p.companion_s > 0:
+        companion = np.full(n_rows, -1, dtype=np.int64)
+        companion[: free_rows.size] = _companions(
+            col.X[free_rows], col.t[free_rows], cen, nrm, t_lo, t_hi, is_settled,
+            math.hypot(p.body_radius_m, p.body_half_height_m), p.companion_s,
+        )  # fmt: skip
     burst = _bursts(t_span, list(cen), p)
     size = np.bincount(burst, minlength=int(burst.max(initial=-1)) + 1) if burst.size else burst
     clustered = size[burst] >= p.burst_events_min if burst.size else np.zeros(0, dtype=bool)
@@ -400,6 +422,7 @@ def build_training_set(
             prior_false=prior.astype(np.float64),
             burst=burst,
             extra_llr=np.where(swept, p.sweep_llr, 0.0) + np.where(clustered, p.burst_llr, 0.0),
+            companion=companion,
         ),
         event_ids=event_ids.astype(np.int64),
         group_ids=tuple(ids_of),
@@ -530,6 +553,33 @@ def _bursts(
             open_.append(best)
         best[1] = max(best[1], t_span[g][1])
         out[g] = best[2]
+    return out
+
+
+def _companions(
+    X: np.ndarray, t: np.ndarray, centres: np.ndarray, normals: np.ndarray,
+    t_lo: np.ndarray, t_hi: np.ndarray, settled: np.ndarray, reach: float, window_s: float,
+) -> np.ndarray:  # fmt: skip
+    """The group each free row ``X`` (taken at ``t``) is a companion of, -1 for none: the
+    nearest in time of the unsettled groups with a contact plane whose time span it lies
+    within ``window_s`` of, in front of that plane and within ``reach`` (the body's) of its
+    contacts' centroid (module docstring)."""
+    out = np.full(X.shape[0], -1, dtype=np.int64)
+    if X.shape[0] == 0:
+        return out
+    best = np.full(X.shape[0], np.inf)
+    w = int(window_s * 1e9)
+    ok = np.any(normals != 0.0, axis=1) & np.all(np.isfinite(centres), axis=1) & ~settled
+    for g in np.flatnonzero(ok):
+        near = np.flatnonzero((t >= t_lo[g] - w) & (t <= t_hi[g] + w))
+        if near.size == 0:
+            continue
+        dx = X[near] - centres[g]
+        mine = (dx @ normals[g] > 0.0) & (np.linalg.norm(dx, axis=1) <= reach)
+        gap = np.maximum(t_lo[g] - t[near], t[near] - t_hi[g]).astype(np.float64)
+        take = mine & (gap < best[near])
+        out[near[take]] = g
+        best[near[take]] = gap[take]
     return out
 
 

@@ -131,6 +131,48 @@ def test_leave_burst_out_residuals_equal_an_explicit_refit_without_the_burst():
     assert est.llr_[0] == pytest.approx(llr, rel=1e-6, abs=1e-6)
 
 
+def test_a_companion_is_left_out_with_its_event_and_stays_in_the_fit():
+    """Oracle: a burst's llr with a companion row is the explicit refit without the burst and
+    the companion; the fitted surface (the decisions alike) does not change."""
+    X, y, g, s2 = toy_with_event([0.0, 0.7, 0.7])
+    X = np.vstack([X, [0.05, 0.7, 0.7]])  # the vehicle's centre as it met the wall
+    y = np.append(y, 1.0)
+    g = np.append(g, -1)
+    s2 = np.append(s2, 0.09)
+    comp = np.where(np.arange(len(g)) == len(g) - 1, 12, -1)
+    base = groups(g, 1e-6)
+    kw = dict(lengthscale=0.3, signal_var=0.6, bounds=BOUNDS, learn_kernel=False, max_iter=1)
+    plain = EventMixtureGPIS(**kw).fit(X, y, s2, base)
+    est = EventMixtureGPIS(**kw).fit(X, y, s2, dataclasses.replace(base, companion=comp))
+    out = (g == 12) | (comp == 12)
+    r = 1e-4
+    s2_eff = np.where(g < 0, s2, 1.0 / ((1 - r) / s2 + r / est.outlier_var))
+    mean, cov = dense_gp(X[~out], y[~out], s2_eff[~out], X[g == 12], 0.3, 0.6)
+    e = float((y[g == 12] - mean).mean())
+    v = float(cov.mean())
+
+    def logn(e, var):
+        return -0.5 * (e * e / var + math.log(var) + math.log(2 * math.pi))
+
+    llr = logn(e, v + est.outlier_var) - logn(e, v + s2[g == 12].mean())
+    assert est.llr_[12] == pytest.approx(llr, rel=1e-6, abs=1e-6)
+    assert est.llr_[12] < plain.llr_[12]  # the +1 5 cm off no longer speaks against it
+    np.testing.assert_allclose(np.delete(est.llr_, 12), np.delete(plain.llr_, 12), atol=1e-9)
+    Xq = np.random.default_rng(1).uniform(-0.2, 1.0, (40, 3))
+    np.testing.assert_allclose(est.predict(Xq), plain.predict(Xq), atol=1e-10)
+
+
+def test_a_companion_must_be_a_trusted_row_of_an_existing_group():
+    X, y, g = toy()
+    base = groups(g, 0.1)
+    with pytest.raises(InputDataError, match="companion"):
+        dataclasses.replace(base, companion=np.where(g >= 0, 0, -1))  # a group's own row
+    with pytest.raises(InputDataError, match="companion"):
+        dataclasses.replace(base, companion=np.full(len(g), 99))
+    with pytest.raises(InputDataError, match="companion"):
+        dataclasses.replace(base, companion=np.zeros(3, dtype=np.int64))
+
+
 def test_a_false_contact_in_free_space_is_flagged_and_a_doubted_touch_on_the_wall_is_not():
     # event 12: a 'contact' in the middle of the free points; event 0 doubted by its prior
     X, y, g, s2 = toy_with_event([0.6, 0.7, 0.7])
@@ -299,6 +341,34 @@ def test_the_body_passing_through_a_contacts_tangent_disc_refutes_it(disc):
     ts = build_training_set(o, policy)
     assert list(ts.swept) == [False, disc > 0]
     assert ts.groups.extra_llr[1] == (policy.sweep_llr if disc > 0 else 0.0)
+
+
+@pytest.mark.parametrize("window", [0.0, 0.5])
+def test_the_vehicle_at_a_touch_is_its_companion(window):
+    """A touch on the top of a box (z = 1, normal +z) by a body 0.05 m thick: the vehicle's
+    centre 0.05 m above it, sampled just before the impulse, is the touch's companion (within
+    ``companion_s``). Samples behind the contact's plane, beyond the body's reach, or long
+    before are not."""
+    policy = TrainingPolicy(companion_s=window, free_voxel_m=0.01, body_radius_m=0.2,
+                            body_half_height_m=0.05)  # fmt: skip
+    z = np.array([0.0, 0.0, 1.0])
+    c = np.array([0.0, 0.0, 1.0])
+    o = [
+        Observation(0, int(10e9), c, 0.0, z, 0, 0.0, p_false=0.05, sigma_m=0.01),
+        Observation(1, int(10e9), c - 0.1 * z, -1.0, z, 0, 0.0, p_false=0.05, sigma_m=0.01),
+        obs(2, 9.95, [0.02, 0.0, 1.05], 1, -1),  # the centre as the body met the top
+        obs(3, 9.9, [0.0, 0.1, 0.98], 1, -1),  # behind the plane: evidence against the touch
+        obs(4, 9.8, [0.3, 0.0, 1.05], 1, -1),  # beyond the body's reach
+        obs(5, 2.0, [0.0, 0.05, 1.05], 1, -1),  # long before: not the body at this touch
+    ]
+    ts = build_training_set(o, policy)
+    comp = ts.groups.companion
+    if not window:
+        assert comp is None
+        return
+    assert comp.tolist() == [0, -1, -1, -1] + [-1] * (len(ts) - 4)
+    assert ts.groups.row_group[:4].tolist() == [-1] * 4  # still free rows of the fit
+    assert ts.y[:4].tolist() == [1.0] * 4
 
 
 def test_a_burst_is_evidence_against_its_events_unless_the_detector_vouches_for_them():
