@@ -13,12 +13,12 @@
   contact it places, true or false, so it is no evidence about which the event is; but as
   +1 a few centimetres from a 0 it bent the field so steeply that the rest of the data took
   real touches on horizontal faces for outliers. A free sample taken within ``companion_s``
-  of an event, in front of its contact plane and within the body's reach of its contacts, is
-  that event's *companion*: left out with the event's burst when the mixture tests it
-  (``Groups.companion``), kept in the fit (it is true free space either way). Samples behind
-  the plane are not companions: they are evidence against the contact.
-  (``TrainingPolicy.companion_s`` defaults to 0, none; the map's default is
-  ``MappingSettings.companion_s``.)
+  of an event, in front of its contact plane by less than ``COMPANION_CLEARANCE`` of that
+  clearance and within the body's reach of its contacts, is that event's *companion*: left out
+  with the event's burst when the mixture tests it (``Groups.companion``), kept in the fit (it
+  is true free space either way). Samples behind the plane are not companions: they are
+  evidence against the contact; nor are samples as far in front as +1 says (a contact on the
+  vehicle's side). Off by default (``MappingSettings.companion_s``).
 - **Noise.** A contact or internal row's variance is ``contact_noise^2 + (slope * sigma_m)^2``
   (``sigma_m``: the detector's placement uncertainty in metres; ``slope``: the potential's change
   per metre, from 0 at the surface to ``inside_value`` at ``d_in`` behind it); a free row's is
@@ -94,6 +94,14 @@ PLANE_TURN_SIN = 0.3
 #: way the normal turns) within this factor of tan(turn / 2). The other face of a corner
 #: touched nearer to or farther from the edge than this touch is no bend: the plane holds.
 PLANE_BEND_RATIO = 1.25
+
+
+#: A free sample is a contact's companion only while it lies nearer the contact's plane than
+#: this share of the clearance +1 stands for (``1 / slope``, 0.2 m at the default slope): a
+#: sample 0.2 m in front of a contact made on the vehicle's side agrees with the label's own
+#: scale, and on the paper-like 3D set it was what flagged an isolated gust there (as a
+#: companion: that gust kept, largest phantom patch 0.19 -> 0.53 m²).
+COMPANION_CLEARANCE = 0.75
 
 
 @dataclasses.dataclass(frozen=True)
@@ -402,7 +410,8 @@ def build_training_set(
         companion = np.full(n_rows, -1, dtype=np.int64)
         companion[: free_rows.size] = _companions(
             col.X[free_rows], col.t[free_rows], cen, nrm, t_lo, t_hi, is_settled,
-            math.hypot(p.body_radius_m, p.body_half_height_m), p.companion_s,
+            math.hypot(p.body_radius_m, p.body_half_height_m), COMPANION_CLEARANCE / slope,
+            p.companion_s,
         )  # fmt: skip
     burst = _bursts(t_span, list(cen), p)
     size = np.bincount(burst, minlength=int(burst.max(initial=-1)) + 1) if burst.size else burst
@@ -558,12 +567,13 @@ def _bursts(
 
 def _companions(
     X: np.ndarray, t: np.ndarray, centres: np.ndarray, normals: np.ndarray,
-    t_lo: np.ndarray, t_hi: np.ndarray, settled: np.ndarray, reach: float, window_s: float,
+    t_lo: np.ndarray, t_hi: np.ndarray, settled: np.ndarray, reach: float, clearance: float,
+    window_s: float,
 ) -> np.ndarray:  # fmt: skip
     """The group each free row ``X`` (taken at ``t``) is a companion of, -1 for none: the
     nearest in time of the unsettled groups with a contact plane whose time span it lies
-    within ``window_s`` of, in front of that plane and within ``reach`` (the body's) of its
-    contacts' centroid (module docstring)."""
+    within ``window_s`` of, in front of that plane by less than ``clearance`` and within
+    ``reach`` (the body's) of its contacts' centroid (module docstring)."""
     out = np.full(X.shape[0], -1, dtype=np.int64)
     if X.shape[0] == 0:
         return out
@@ -575,7 +585,8 @@ def _companions(
         if near.size == 0:
             continue
         dx = X[near] - centres[g]
-        mine = (dx @ normals[g] > 0.0) & (np.linalg.norm(dx, axis=1) <= reach)
+        ahead = dx @ normals[g]
+        mine = (ahead > 0.0) & (ahead < clearance) & (np.linalg.norm(dx, axis=1) <= reach)
         gap = np.maximum(t_lo[g] - t[near], t[near] - t_hi[g]).astype(np.float64)
         take = mine & (gap < best[near])
         out[near[take]] = g

@@ -347,8 +347,8 @@ def test_the_body_passing_through_a_contacts_tangent_disc_refutes_it(disc):
 def test_the_vehicle_at_a_touch_is_its_companion(window):
     """A touch on the top of a box (z = 1, normal +z) by a body 0.05 m thick: the vehicle's
     centre 0.05 m above it, sampled just before the impulse, is the touch's companion (within
-    ``companion_s``). Samples behind the contact's plane, beyond the body's reach, or long
-    before are not."""
+    ``companion_s``). Samples behind the contact's plane, beyond the body's reach, long
+    before, or nearly as far in front as the +1 label's clearance (0.2 m) are not."""
     policy = TrainingPolicy(companion_s=window, free_voxel_m=0.01, body_radius_m=0.2,
                             body_half_height_m=0.05)  # fmt: skip
     z = np.array([0.0, 0.0, 1.0])
@@ -360,15 +360,16 @@ def test_the_vehicle_at_a_touch_is_its_companion(window):
         obs(3, 9.9, [0.0, 0.1, 0.98], 1, -1),  # behind the plane: evidence against the touch
         obs(4, 9.8, [0.3, 0.0, 1.05], 1, -1),  # beyond the body's reach
         obs(5, 2.0, [0.0, 0.05, 1.05], 1, -1),  # long before: not the body at this touch
+        obs(6, 10.1, [0.0, -0.05, 1.18], 1, -1),  # 0.18 m up: as clear as +1 says (0.2 m)
     ]
     ts = build_training_set(o, policy)
     comp = ts.groups.companion
     if not window:
         assert comp is None
         return
-    assert comp.tolist() == [0, -1, -1, -1] + [-1] * (len(ts) - 4)
-    assert ts.groups.row_group[:4].tolist() == [-1] * 4  # still free rows of the fit
-    assert ts.y[:4].tolist() == [1.0] * 4
+    assert comp.tolist() == [0, -1, -1, -1, -1] + [-1] * (len(ts) - 5)
+    assert ts.groups.row_group[:5].tolist() == [-1] * 5  # still free rows of the fit
+    assert ts.y[:5].tolist() == [1.0] * 5
 
 
 def test_a_burst_is_evidence_against_its_events_unless_the_detector_vouches_for_them():
