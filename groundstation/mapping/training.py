@@ -9,16 +9,16 @@
 - **The vehicle at a contact.** A free sample is the vehicle's centre, +1 a clearance of
   about ``1 / slope`` (0.2 m at the default slope of 5 per metre). The centre of a body in
   contact is only the body's extent from the contact: 0.05 m above the top of a box the
-  vehicle sits on. Such a sample is what the detector's geometry puts in front of *any*
-  contact it places, true or false, so it is no evidence about which the event is; but as
-  +1 a few centimetres from a 0 it bent the field so steeply that the rest of the data took
-  real touches on horizontal faces for outliers. A free sample taken within ``companion_s``
-  of an event, in front of its contact plane by less than ``COMPANION_CLEARANCE`` of that
-  clearance and within the body's reach of its contacts, is that event's *companion*: left out
-  with the event's burst when the mixture tests it (``Groups.companion``), kept in the fit (it
-  is true free space either way). Samples behind the plane are not companions: they are
-  evidence against the contact; nor are samples as far in front as +1 says (a contact on the
-  vehicle's side). Off by default (``MappingSettings.companion_s``).
+  vehicle sits on. The detector's geometry puts such a sample in front of *any* contact it
+  places, true or false; as +1 a few centimetres from a 0 it bent the field so steeply that
+  the rest of the data took real touches on horizontal faces for outliers. A free sample
+  taken within ``companion_s`` of an event, in front of its contact plane by less than
+  ``COMPANION_CLEARANCE`` of that clearance and within the body's reach of its contacts, is
+  that event's *companion*: left out with the event's burst when the mixture tests it
+  (``Groups.companion``), kept in the fit (it is true free space either way). Samples behind
+  the plane are not companions: they are evidence against the contact; nor are samples as
+  far in front as +1 says (a contact on the vehicle's side). Off by default
+  (``MappingSettings.companion_s``).
 - **Noise.** A contact or internal row's variance is ``contact_noise^2 + (slope * sigma_m)^2``
   (``sigma_m``: the detector's placement uncertainty in metres; ``slope``: the potential's change
   per metre, from 0 at the surface to ``inside_value`` at ``d_in`` behind it); a free row's is
