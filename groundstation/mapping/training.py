@@ -66,7 +66,10 @@
   adds ``sweep_llr`` nats to the event's evidence for 'false' (a true contact is only ever
   inside the swept body by its placement error, kept out by ``sweep_tolerance_m``, or where
   its surface ends within the disc: an edge the vehicle later flew round at the height of the
-  touch).
+  touch). A rim point that a touch of another event places outside its own surface (the
+  ``_plane_points`` guard: the other face of an edge) is no probe, where the detector vouches
+  for that touch (prior ``P(false)`` at most ``plane_max_p_false``; gusts guarding each other
+  would clear a cluster).
 """
 
 from __future__ import annotations
@@ -418,7 +421,8 @@ def build_training_set(
     clustered = size[burst] >= p.burst_events_min if burst.size else np.zeros(0, dtype=bool)
     clustered &= prior >= p.burst_min_p_false  # impacts the detector vouches for: a pilot tapping
     is_free = col.label > 0
-    swept = _swept(contacts, cen, nrm, t_span, col.X[is_free], col.t[is_free], p)
+    guard = prior <= p.plane_max_p_false  # touches whose plane may say where a surface ends
+    swept = _swept(contacts, cen, nrm, t_span, col.X[is_free], col.t[is_free], guard, p)
     return TrainingSet(
         X=np.concatenate(rows_X).reshape(-1, d),
         directions=np.concatenate(dirs).reshape(-1, d),
@@ -596,11 +600,12 @@ def _companions(
 
 def _swept(
     contacts, centres, normals, t_span, free_pts: np.ndarray, free_t: np.ndarray,
-    p: TrainingPolicy,
+    guard: np.ndarray, p: TrainingPolicy,
 ) -> np.ndarray:  # fmt: skip
     """Which groups' contact points, or the rim of their tangent disc (``sweep_disc_m`` round
     the contacts' centroid, across their mean normal), lie inside the body at a free-space
-    sample away from them."""
+    sample away from them. A rim point past an edge (``_past_edge``: a ``guard`` touch of
+    another event places it outside its own surface) is no probe: the surface ends before it."""
     G = len(contacts)
     out = np.zeros(G, dtype=bool)
     if G == 0 or free_pts.shape[0] == 0 or free_pts.shape[1] != 3:
@@ -618,7 +623,35 @@ def _swept(
     rim_of = np.flatnonzero((np.asarray(sizes) > 0) & ~out & np.any(normals != 0.0, axis=1))
     if p.sweep_disc_m > 0 and rim_of.size:  # only the groups the points left standing
         rims = _rims(centres[rim_of], normals[rim_of], p.sweep_disc_m).reshape(-1, 3)
-        _inside_body(tree, free_t, rims, np.repeat(rim_of, DISC_POINTS), t_span, p, out)
+        owner = np.repeat(rim_of, DISC_POINTS)
+        keep = ~_past_edge(rims, owner, centres, normals, guard, p.sweep_disc_m)
+        _inside_body(tree, free_t, rims[keep], owner[keep], t_span, p, out)
+    return out
+
+
+def _past_edge(
+    pts: np.ndarray, owner: np.ndarray, centres: np.ndarray, normals: np.ndarray,
+    guard: np.ndarray, reach: float,
+) -> np.ndarray:  # fmt: skip
+    """(k,) bool: probe ``pts[k]`` of group ``owner[k]`` lies past an edge: a ``guard`` group
+    other than its own, with a contact plane and its centroid within ``PLANE_GUARD_REACHES *
+    reach`` of the probe, places it outside its surface (by more than ``PLANE_BEYOND_TOL_M``
+    along its normal), as ``_plane_points`` does. The deck's end face touched near its lower
+    edge has half its disc below the deck, where the vehicle flies later; the underside's
+    touches say that the end face stops there."""
+    out = np.zeros(len(pts), dtype=bool)
+    ok = guard & np.all(np.isfinite(centres), axis=1) & np.any(normals != 0.0, axis=1)
+    by = np.flatnonzero(ok)
+    if not by.size or not len(pts):
+        return out
+    from scipy.spatial import cKDTree
+
+    near = cKDTree(centres[by]).query_ball_point(pts, PLANE_GUARD_REACHES * reach)
+    count = np.fromiter(map(len, near), np.int64, len(near))
+    i = np.repeat(np.arange(len(near)), count)  # (probe, guard) pairs in reach
+    j = by[np.fromiter(itertools.chain.from_iterable(near), np.int64, int(count.sum()))]
+    beyond = np.einsum("ij,ij->i", pts[i] - centres[j], normals[j]) > PLANE_BEYOND_TOL_M
+    out[i[beyond & (j != owner[i])]] = True
     return out
 
 
