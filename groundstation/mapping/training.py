@@ -636,7 +636,8 @@ def _past_edge(
     """(k,) bool: probe ``pts[k]`` of group ``owner[k]`` lies past an edge: a ``guard`` group
     other than its own, with a contact plane and its centroid within ``PLANE_GUARD_REACHES *
     reach`` of the probe, places it outside its surface (by more than ``PLANE_BEYOND_TOL_M``
-    along its normal), as ``_plane_points`` does. The deck's end face touched near its lower
+    along its normal), as ``_plane_points`` does, where the two touches are faces of one solid
+    (each lies on or behind the other's tangent plane). The deck's end face touched near its lower
     edge has half its disc below the deck, where the vehicle flies later; the underside's
     touches say that the end face stops there."""
     out = np.zeros(len(pts), dtype=bool)
@@ -650,8 +651,15 @@ def _past_edge(
     count = np.fromiter(map(len, near), np.int64, len(near))
     i = np.repeat(np.arange(len(near)), count)  # (probe, guard) pairs in reach
     j = by[np.fromiter(itertools.chain.from_iterable(near), np.int64, int(count.sum()))]
+    g = owner[i]
     beyond = np.einsum("ij,ij->i", pts[i] - centres[j], normals[j]) > PLANE_BEYOND_TOL_M
-    out[i[beyond & (j != owner[i])]] = True
+    # two faces of one solid: each touch on or behind the other's plane (a gust in the free
+    # space in front of a touched wall is not behind that wall)
+    pair = (
+        (np.einsum("ij,ij->i", centres[g] - centres[j], normals[j]) <= PLANE_BEYOND_TOL_M)
+        & (np.einsum("ij,ij->i", centres[j] - centres[g], normals[g]) <= PLANE_BEYOND_TOL_M)
+    )  # fmt: skip
+    out[i[beyond & pair & (j != g)]] = True
     return out
 
 

@@ -343,14 +343,18 @@ def test_the_body_passing_through_a_contacts_tangent_disc_refutes_it(disc):
     assert ts.groups.extra_llr[1] == (policy.sweep_llr if disc > 0 else 0.0)
 
 
-@pytest.mark.parametrize("underside", [None, 0.05, 0.9])
-def test_a_disc_reaching_past_an_edge_the_other_face_shows_is_no_refutation(underside):
+@pytest.mark.parametrize(
+    ("underside", "other_x"), [(None, 0.0), (0.05, -0.15), (0.9, -0.15), (0.05, 0.15)]
+)
+def test_a_disc_reaching_past_an_edge_the_other_face_shows_is_no_refutation(underside, other_x):
     """A deck (x < 0, 1.0 <= z <= 1.3): its end face x = 0 (normal +x) touched 0.06 m above
     its lower edge; the tangent disc (0.1 m) reaches 0.04 m below the deck, where the vehicle
     later flies (centre 0.1 m under the deck's end, at z = 0.96). A touch of the underside
-    (normal -z) that the detector vouches for shows the end face stops at z = 1: the rim
-    points below it are no probes, and the touch stands. Without that touch, or with one the
-    detector doubts (prior above ``plane_max_p_false``), the disc refutes it as before."""
+    (normal -z, at ``other_x``) that the detector vouches for shows the end face stops at
+    z = 1: the rim points below it are no probes, and the touch stands. Without that touch,
+    with one the detector doubts (prior above ``plane_max_p_false``), or with a downward-facing
+    touch in front of the end face (x = +0.15: no face of the same solid; a gust in front of
+    a touched wall is no edge of it) the disc refutes it as before."""
     policy = TrainingPolicy(body_radius_m=0.2, body_half_height_m=0.05, sweep_disc_m=0.1,
                             plane_max_p_false=0.3)  # fmt: skip
 
@@ -364,10 +368,10 @@ def test_a_disc_reaching_past_an_edge_the_other_face_shows_is_no_refutation(unde
 
     o = touch(0, 0.0, [0.0, 0.0, 1.06], [1, 0, 0], 0, 0.05)
     if underside is not None:
-        o += touch(2, 5.0, [-0.15, 0.0, 1.0], [0, 0, -1], 1, underside)
+        o += touch(2, 5.0, [other_x, 0.0, 1.0], [0, 0, -1], 1, underside)
     o += [obs(4, 20.0, [-0.1, 0.0, 0.96], 1, -1)]
     ts = build_training_set(o, policy)
-    assert bool(ts.swept[0]) == (underside != 0.05)
+    assert bool(ts.swept[0]) == (underside != 0.05 or other_x > 0)
     assert not np.any(ts.swept[1:])  # the underside's own disc lies above the vehicle
 
 
