@@ -17,7 +17,7 @@
   that event's *companion*: left out with the event's burst when the mixture tests it
   (``Groups.companion``), kept in the fit (it is true free space either way). Samples behind
   the plane are not companions: they are evidence against the contact; nor are samples as
-  far in front as +1 says (a contact on the vehicle's side). Off by default
+  far in front as +1 says (a contact on the vehicle's side). Within 0.5 s by default
   (``MappingSettings.companion_s``).
 - **Noise.** A contact or internal row's variance is ``contact_noise^2 + (slope * sigma_m)^2``
   (``sigma_m``: the detector's placement uncertainty in metres; ``slope``: the potential's change
