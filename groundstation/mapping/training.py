@@ -69,7 +69,8 @@
   touch). A rim point that a touch of another event places outside its own surface (the
   ``_plane_points`` guard: the other face of an edge) is no probe, where the detector vouches
   for that touch (prior ``P(false)`` at most ``plane_max_p_false``; gusts guarding each other
-  would clear a cluster).
+  would clear a cluster) and the two are faces of one solid (each on or behind the other's
+  plane; a gust in front of a touched wall is no edge of it).
 """
 
 from __future__ import annotations
