@@ -93,6 +93,24 @@ class VehicleSettings:
             math.hypot(math.hypot(bx, by), bz + self.leg_length_m),
         )
 
+    @property
+    def inner_radius_m(self) -> float:
+        """Radius of the vertical disc round the centre of mass that the body fills whatever
+        its yaw, metres: the cylinder's radius; for a guarded quadrotor (props spinning fill
+        each guard ring) the reach of the two rings either side of the line half-way between
+        two arms, along that line (the rotors lie ``arm_length * sin 45deg`` off it in either
+        layout), or the central body's smaller half-width where the rings leave a gap there.
+        Farther out, in that direction, lies the gap between two guards: no part of the body.
+        (A sliver beside the central body, nearer the centre than the rings reach, counts as
+        body: a point there is a few centimetres from the centre of mass.)"""
+        if self.shape == "cylinder":
+            return self.radius_m
+        off = self.arm_length_m * math.sin(math.pi / 4)
+        box = min(self.body_half_m[0], self.body_half_m[1])
+        if self.guard_radius_m <= off:
+            return box
+        return max(box, off + math.sqrt(self.guard_radius_m**2 - off**2))
+
     def rotor_centres(self) -> np.ndarray:
         """(4, 3) rotor axis points in the guard plane, body FLU, metres."""
         a0 = math.pi / 4 if self.layout == "x" else 0.0

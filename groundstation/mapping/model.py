@@ -81,10 +81,10 @@ def training_policy(
 ) -> TrainingPolicy:
     """How observations become rows (``mapping/training.py``) for these settings and body."""
     if vehicle.shape == "cylinder":
-        radius, half_h = vehicle.radius_m, 0.5 * vehicle.height_m
-    else:  # a guarded quadrotor: its rim is nearest the centre between two guards
-        radius = vehicle.arm_length_m * math.cos(math.pi / 4) + vehicle.guard_radius_m
-        half_h = 0.05
+        half_h = 0.5 * vehicle.height_m
+    else:  # a guarded quadrotor is as thick as its central body (the guards are rings in one
+        # plane, the legs thin rods)
+        half_h = vehicle.body_half_m[2]
     return TrainingPolicy(
         inside_value=mapping.inside_value,
         internal_depth_m=d_in,
@@ -94,8 +94,10 @@ def training_policy(
         prior_false=mapping.prior_false,
         burst_gap_s=mapping.burst_gap_s,
         burst_radius_m=mapping.burst_radius_m,
-        body_radius_m=radius,
+        body_radius_m=vehicle.inner_radius_m,
         body_half_height_m=half_h,
+        body_reach_m=vehicle.reach_m,
+        tolerance_along_normal=vehicle.shape == "guards",
         sweep_exclude_s=mapping.sweep_exclude_s,
         sweep_tolerance_m=mapping.sweep_tolerance_m,
         sweep_llr=mapping.sweep_llr,

@@ -63,8 +63,10 @@ class MappingSettings:
         a free-space sample away from it: log(1 / 0.01), a true contact being there only through
         a placement error beyond ``sweep_tolerance_m`` (mixture).
     sweep_exclude_s, sweep_tolerance_m : float
-        Free-space samples this close in time to the event do not count; the body is shrunk by
-        the tolerance (mixture).
+        Free-space samples this close in time to the event do not count; a contact counts as
+        inside the body only if it is wherever within the tolerance it really was: all round
+        for the cylinder, along its normal for a guarded quadrotor (its placement error;
+        ``mapping/training.py``; mixture).
     sweep_disc_m : float
         The swept-volume test covers each contact's tangent disc of this radius, not only the
         contact point (mixture; 0: the point alone). The surface a touch shows goes on round it,

@@ -13,11 +13,11 @@
   places, true or false; as +1 a few centimetres from a 0 it bent the field so steeply that
   the rest of the data took real touches on horizontal faces for outliers. A free sample
   taken within ``companion_s`` of an event, in front of its contact plane by less than
-  ``COMPANION_CLEARANCE`` of that clearance and within the body's reach of its contacts, is
-  that event's *companion*: left out with the event's burst when the mixture tests it
-  (``Groups.companion``), kept in the fit (it is true free space either way). Samples behind
-  the plane are not companions: they are evidence against the contact; nor are samples as
-  far in front as +1 says (a contact on the vehicle's side). Within 0.5 s by default
+  ``COMPANION_CLEARANCE`` of that clearance and within the body's reach (``body_reach_m``) of
+  its contacts, is that event's *companion*: left out with the event's burst when the mixture
+  tests it (``Groups.companion``), kept in the fit (it is true free space either way). Samples
+  behind the plane are not companions: they are evidence against the contact; nor are samples
+  as far in front as +1 says (a contact on the vehicle's side). Within 0.5 s by default
   (``MappingSettings.companion_s``).
 - **Noise.** A contact or internal row's variance is ``contact_noise^2 + (slope * sigma_m)^2``
   (``sigma_m``: the detector's placement uncertainty in metres; ``slope``: the potential's change
@@ -61,13 +61,26 @@
 - **Swept volume.** The vehicle's body cannot have passed through a surface: an event whose
   contact, or a point on the rim of its tangent disc of radius ``sweep_disc_m`` round its
   contacts' centroid (the surface a touch shows goes on round it), lies inside the body
-  (``body_radius_m`` around a free-space centre, ``body_half_height_m`` above and below) at a
-  free-space sample taken at least ``sweep_exclude_s`` away from the event is refuted. It
-  adds ``sweep_llr`` nats to the event's evidence for 'false' (a true contact is only ever
-  inside the swept body by its placement error, kept out by ``sweep_tolerance_m``, or where
-  its surface ends within the disc: an edge the vehicle later flew round at the height of the
-  touch). A rim point that a touch of another event places outside its own surface (the
-  ``_plane_points`` guard: the other face of an edge) is no probe, where the detector vouches
+  (``body_radius_m`` round a free-space centre, the disc it fills whatever its yaw, and
+  ``body_half_height_m`` above and below) at a free-space sample taken at least
+  ``sweep_exclude_s`` away from the event is refuted. It adds ``sweep_llr`` nats to the
+  event's evidence for 'false' (a true contact is only ever inside the swept body by its
+  placement error, or where its surface ends within the disc: an edge the vehicle later flew
+  round at the height of the touch). Where a contact really was depends on what touched. A
+  cylinder's flat side wall (0.1 m high) or top (a 0.4 m disc) may have met the surface
+  anywhere on it: its probes keep ``sweep_tolerance_m`` all round (the body shrunk by it;
+  with the tolerance along the normal alone, the side wall's full height refuted true side
+  touches whose disc reached past a top edge the vehicle then flew over). A guarded
+  quadrotor touches with a thin guard ring or its small central body: its error lies along
+  the contact's normal (``tolerance_along_normal``), so a probe counts if it is inside the
+  body wherever within the tolerance along its normal it was, and the body keeps its own
+  extent across the normal (shrunk all round, a body 0.05 m thick keeps none). Along the
+  normal, a body thinner than twice the tolerance then refutes nothing from one sample: a
+  vehicle resting on a deck top is as near the deck as a body can be. (With the guarded body
+  assumed 0.1 m thick and 0.255 m wide, a MuJoCo vehicle resting on a pier deck refuted top
+  touches placed 1-4 cm high.) A rim point that a touch of another event places outside its
+  own surface (the ``_plane_points`` guard: the other face of an edge) is no probe, where the
+  detector vouches
   for that touch (prior ``P(false)`` at most ``plane_max_p_false``; gusts guarding each other
   would clear a cluster) and the two are faces of one solid (each on or behind the other's
   plane; a gust in front of a touched wall is no edge of it).
@@ -122,6 +135,8 @@ class TrainingPolicy:
     burst_radius_m: float = 0.3
     body_radius_m: float = 0.2
     body_half_height_m: float = 0.05
+    body_reach_m: float = 0.206
+    tolerance_along_normal: bool = False
     sweep_exclude_s: float = 0.5
     sweep_tolerance_m: float = 0.03
     sweep_llr: float = 4.6
@@ -414,7 +429,7 @@ def build_training_set(
         companion = np.full(n_rows, -1, dtype=np.int64)
         companion[: free_rows.size] = _companions(
             col.X[free_rows], col.t[free_rows], cen, nrm, t_lo, t_hi, is_settled,
-            math.hypot(p.body_radius_m, p.body_half_height_m), COMPANION_CLEARANCE / slope,
+            p.body_reach_m, COMPANION_CLEARANCE / slope,
             p.companion_s,
         )  # fmt: skip
     burst = _bursts(t_span, list(cen), p)
@@ -613,20 +628,21 @@ def _swept(
         return out
     from scipy.spatial import cKDTree
 
-    if p.body_radius_m - p.sweep_tolerance_m <= 0:
+    if p.body_radius_m <= 0 or p.body_half_height_m <= 0:
         return out
     sizes = [len(cs) for cs in contacts]
     if not sum(sizes):
         return out
     tree = cKDTree(free_pts)
     pts = np.concatenate([cs for cs in contacts if len(cs)])
-    _inside_body(tree, free_t, pts, np.repeat(np.arange(G), sizes), t_span, p, out)
+    owner = np.repeat(np.arange(G), sizes)
+    _inside_body(tree, free_t, pts, normals[owner], owner, t_span, p, out)
     rim_of = np.flatnonzero((np.asarray(sizes) > 0) & ~out & np.any(normals != 0.0, axis=1))
     if p.sweep_disc_m > 0 and rim_of.size:  # only the groups the points left standing
         rims = _rims(centres[rim_of], normals[rim_of], p.sweep_disc_m).reshape(-1, 3)
         owner = np.repeat(rim_of, DISC_POINTS)
         keep = ~_past_edge(rims, owner, centres, normals, guard, p.sweep_disc_m)
-        _inside_body(tree, free_t, rims[keep], owner[keep], t_span, p, out)
+        _inside_body(tree, free_t, rims[keep], normals[owner[keep]], owner[keep], t_span, p, out)
     return out
 
 
@@ -664,13 +680,16 @@ def _past_edge(
     return out
 
 
-def _inside_body(tree, free_t, pts, owner, t_span, p: TrainingPolicy, out: np.ndarray) -> None:
-    """Set ``out[owner[k]]`` where probe ``pts[k]`` lies inside the body (shrunk by the
-    tolerance) at a free-space sample of ``tree`` taken ``sweep_exclude_s`` or more away from
-    its group's time span."""
-    r = p.body_radius_m - p.sweep_tolerance_m
-    h = p.body_half_height_m - p.sweep_tolerance_m
-    near = tree.query_ball_point(pts, math.hypot(r, max(h, 0.0)))
+def _inside_body(
+    tree, free_t, pts, normals, owner, t_span, p: TrainingPolicy, out: np.ndarray
+) -> None:
+    """Set ``out[owner[k]]`` where probe ``pts[k]`` lies inside the body at a free-space sample
+    of ``tree`` taken ``sweep_exclude_s`` or more away from its group's time span, wherever
+    it really was: within ``sweep_tolerance_m`` along its unit normal ``normals[k]`` (both ends
+    of that segment inside the body) with ``tolerance_along_normal``, else (or without a
+    normal: zero) anywhere within the tolerance (the body shrunk by it all round)."""
+    R, H, tol = p.body_radius_m, p.body_half_height_m, p.sweep_tolerance_m
+    near = tree.query_ball_point(pts, math.hypot(R, H))
     count = np.fromiter(map(len, near), np.int64, len(near))
     if not count.sum():
         return
@@ -680,7 +699,15 @@ def _inside_body(tree, free_t, pts, owner, t_span, p: TrainingPolicy, out: np.nd
     lo = np.array([s[0] for s in t_span], dtype=np.int64)[owner[i]] - excl
     hi = np.array([s[1] for s in t_span], dtype=np.int64)[owner[i]] + excl
     dx = tree.data[j] - pts[i]
-    inside = (np.hypot(dx[:, 0], dx[:, 1]) < r) & (np.abs(dx[:, 2]) < h)
+    n = normals[i]
+    has_n = np.any(n != 0.0, axis=1) & p.tolerance_along_normal
+    inside = has_n.copy()
+    for sign in (-1.0, 1.0):  # both ends of the probe's tolerance segment
+        e = dx + sign * tol * n
+        inside &= (np.hypot(e[:, 0], e[:, 1]) < R) & (np.abs(e[:, 2]) < H)
+    inside |= (
+        ~has_n & (np.hypot(dx[:, 0], dx[:, 1]) < R - tol) & (np.abs(dx[:, 2]) < H - tol)
+    )  # fmt: skip
     away = (free_t[j] < lo) | (free_t[j] > hi)  # a sample away from the event
     out[owner[i[inside & away]]] = True
 

@@ -375,6 +375,45 @@ def test_a_disc_reaching_past_an_edge_the_other_face_shows_is_no_refutation(unde
     assert not np.any(ts.swept[1:])  # the underside's own disc lies above the vehicle
 
 
+@pytest.mark.parametrize(
+    ("half_h", "along", "normal", "placed_m", "refuted"),
+    [
+        (0.025, True, "top", 0.022, False), (0.025, True, "top", 0.045, False),
+        (0.025, True, "side", 0.0, True), (0.025, False, "side", 0.0, False),
+        (0.05, True, "top", 0.022, False), (0.05, True, "top", 0.035, True),
+        (0.05, False, "side", 0.0, False), (0.05, False, "top", 0.04, True),
+        (0.05, True, "none", 0.04, True),
+    ],
+)  # fmt: skip
+def test_a_contact_is_refuted_only_beyond_its_tolerance(half_h, along, normal, placed_m, refuted):
+    """A body of half-height ``half_h`` (tolerance 0.03 m) later *rests* on a deck top
+    (z = 1.2, for 10 s), after a touch of that top placed ``placed_m`` high. With the
+    tolerance along the normal (``along``: a guarded quadrotor, which touches with thin
+    rings), the touch is refuted only if it lies inside the body wherever within the tolerance
+    along its normal it really was. A body 0.05 m thick is thinner than that band: no sample
+    of it refutes a top touch (before, a body assumed 0.1 m thick and shrunk by the tolerance
+    all round refuted top touches placed 1-2 cm high). A side touch (normal +x, 0.1 m inside
+    the body's radius) 0.024 m below the resting centre is within the body's own half-height,
+    which the tolerance along x leaves whole: refuted; with the tolerance all round (the
+    cylinder, whose flat side wall may have touched anywhere on it) it is not, at either
+    thickness. A body 0.1 m thick refutes a top touch placed 0.035 m high along the normal
+    (beyond the tolerance) and 0.04 m high all round, not one placed 0.022 m high. A probe
+    without a normal keeps the body shrunk all round."""
+    policy = TrainingPolicy(body_radius_m=0.25, body_half_height_m=half_h, sweep_disc_m=0.0,
+                            sweep_tolerance_m=0.03, tolerance_along_normal=along)  # fmt: skip
+    n = np.asarray({"top": [0, 0, 1.0], "side": [1.0, 0, 0], "none": [0, 0, 0.0]}[normal])
+    c = np.array([0.1, 0.0, 1.2 + placed_m]) if normal != "side" else np.array([0.1, 0, 1.201])
+    c[2] += 0.0 if normal != "side" else half_h - 0.025
+    inner = c - 0.1 * (n if n.any() else np.array([0, 0, 1.0]))
+    o = [
+        Observation(0, 0, c, 0.0, n, 0, 0.0, p_false=0.05, sigma_m=0.01),
+        Observation(1, 0, inner, -1.0, n, 0, 0.0, p_false=0.05, sigma_m=0.01),
+    ]
+    o += [obs(2 + k, 20.0 + 2 * k, [0.0, 0.0, 1.2 + half_h], 1, -1) for k in range(5)]  # at rest
+    ts = build_training_set(o, policy)
+    assert bool(ts.swept[0]) == refuted
+
+
 @pytest.mark.parametrize("window", [0.0, 0.5])
 def test_the_vehicle_at_a_touch_is_its_companion(window):
     """A touch on the top of a box (z = 1, normal +z) by a body 0.05 m thick: the vehicle's

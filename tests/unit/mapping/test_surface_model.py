@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from groundstation.contact.detector import Observation
+from groundstation.contact.vehicle import VehicleSettings
 from groundstation.errors import NotFittedError
-from groundstation.mapping.model import SurfaceModel
+from groundstation.mapping.model import SurfaceModel, training_policy
 from groundstation.mapping.settings import MappingSettings, SurfaceSettings
 
 S = 1_000_000_000
@@ -400,3 +401,52 @@ def test_the_vehicle_centre_at_a_touch_does_not_speak_against_it():
     with them when they are tested (``mapping.companion_s``) the data vouch for them."""
     assert np.all(table_top(0.0)[:4] > 0.05)
     assert np.all(table_top(0.5) < 0.05)
+
+
+@pytest.mark.parametrize(
+    ("vehicle", "radius", "half_h"),
+    [
+        (VehicleSettings(), 0.2, 0.05),
+        (VehicleSettings(shape="guards", body_half_m=(0.06, 0.04, 0.025)), 0.04, 0.025),
+        (
+            VehicleSettings(shape="guards", guard_radius_m=0.135, body_half_m=(0.06, 0.04, 0.025)),
+            0.182,
+            0.025,
+        ),
+    ],
+)
+def test_the_swept_body_is_the_configured_airframe(vehicle, radius, half_h):
+    """The swept-volume test's body: the cylinder as configured; a guarded quadrotor fills the
+    disc its guards reach half-way between two arms (none where the rings leave a gap there:
+    its central body's half-width) and is as thick as its central body (its guards are rings
+    in one plane, its legs thin rods). A body assumed larger than the airframe refutes touches
+    in the gap between two guards, and reaches into the deck it rests on."""
+    p = training_policy(MappingSettings(), vehicle, 0.1)
+    assert p.body_radius_m == pytest.approx(radius, abs=2e-3)
+    assert p.body_half_height_m == half_h
+
+
+@pytest.mark.parametrize(
+    "vehicle",
+    [
+        VehicleSettings(shape="guards", guard_radius_m=0.135, body_half_m=(0.06, 0.04, 0.025)),
+        VehicleSettings(shape="guards", layout="+", arm_length_m=0.2, guard_radius_m=0.18),
+    ],
+)
+def test_a_guarded_bodys_inner_radius_is_filled_at_every_yaw(vehicle):
+    """Every point of the circle of ``inner_radius_m`` lies in a guard ring (spinning props fill
+    it) or the central body; a little farther out, half-way between two arms, lies the gap
+    between two guards."""
+    rot = vehicle.rotor_centres()[:, :2]
+    half = np.asarray(vehicle.body_half_m[:2])
+
+    def filled(p):
+        in_ring = np.min(np.linalg.norm(rot - p, axis=1)) <= vehicle.guard_radius_m + 1e-9
+        return in_ring or bool(np.all(np.abs(p) <= half))
+
+    r = vehicle.inner_radius_m
+    ang = np.linspace(0.0, 2 * np.pi, 721)
+    for rho in (0.999 * r, 0.8 * r):
+        assert all(filled(rho * np.array([np.cos(a), np.sin(a)])) for a in ang)
+    between = (np.pi / 4 if vehicle.layout == "+" else 0.0) + np.array([0.0, np.pi / 2])
+    assert not any(filled(1.02 * r * np.array([np.cos(a), np.sin(a)])) for a in between)
