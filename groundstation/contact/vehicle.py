@@ -111,6 +111,13 @@ class VehicleSettings:
             return box
         return max(box, off + math.sqrt(self.guard_radius_m**2 - off**2))
 
+    @property
+    def inner_half_height_m(self) -> float:
+        """Half the thickness the body has across that disc, metres: the cylinder's half
+        height; a guarded quadrotor's central body's (its guards are rings in one plane, its
+        legs thin rods)."""
+        return 0.5 * self.height_m if self.shape == "cylinder" else self.body_half_m[2]
+
     def rotor_centres(self) -> np.ndarray:
         """(4, 3) rotor axis points in the guard plane, body FLU, metres."""
         a0 = math.pi / 4 if self.layout == "x" else 0.0

@@ -80,11 +80,6 @@ def training_policy(
     mapping: MappingSettings, vehicle: VehicleSettings, d_in: float
 ) -> TrainingPolicy:
     """How observations become rows (``mapping/training.py``) for these settings and body."""
-    if vehicle.shape == "cylinder":
-        half_h = 0.5 * vehicle.height_m
-    else:  # a guarded quadrotor is as thick as its central body (the guards are rings in one
-        # plane, the legs thin rods)
-        half_h = vehicle.body_half_m[2]
     return TrainingPolicy(
         inside_value=mapping.inside_value,
         internal_depth_m=d_in,
@@ -95,7 +90,7 @@ def training_policy(
         burst_gap_s=mapping.burst_gap_s,
         burst_radius_m=mapping.burst_radius_m,
         body_radius_m=vehicle.inner_radius_m,
-        body_half_height_m=half_h,
+        body_half_height_m=vehicle.inner_half_height_m,
         body_reach_m=vehicle.reach_m,
         tolerance_along_normal=vehicle.shape == "guards",
         sweep_exclude_s=mapping.sweep_exclude_s,

@@ -135,7 +135,7 @@ class TrainingPolicy:
     burst_radius_m: float = 0.3
     body_radius_m: float = 0.2
     body_half_height_m: float = 0.05
-    body_reach_m: float = 0.206
+    body_reach_m: float = math.hypot(0.2, 0.05)  # the default cylinder's
     tolerance_along_normal: bool = False
     sweep_exclude_s: float = 0.5
     sweep_tolerance_m: float = 0.03
