@@ -21,7 +21,10 @@ Model of the station side (pure and deterministic from the seed; :class:`Station
 
 The live decoders (:mod:`groundstation.acquisition.decoders`) run on these chunks at their
 receive times, and their samples are recorded too (as the link/mocap processes would have
-published them), plus ``truth.json`` and the ``groundstation`` metadata.
+published them), plus ``truth.json`` and the ``groundstation`` metadata, whose ``config`` holds
+the simulated airframe as the station's ``[vehicle]`` table (:func:`station_vehicle`): a replay,
+``batch`` or ``bench sessions --logs`` of the recording starts from the body that was flown, as
+it does from a live session's recorded configuration.
 """
 
 from __future__ import annotations
@@ -36,10 +39,13 @@ import numpy as np
 from firmware_bridge.frames import AxisConvention
 from firmware_bridge.mavlink import MavlinkCodec
 from firmware_bridge.mavlink.messages import SetMessageInterval, Timesync
+from firmware_bridge.sitl.airframe import Airframe
 from groundstation.acquisition import layout
 from groundstation.acquisition.decoders import MavlinkStreamDecoder, NatNetStreamDecoder
 from groundstation.acquisition.recorder import Recorder, RecorderStats
 from groundstation.acquisition.settings import AcquisitionSettings
+from groundstation.config import to_toml
+from groundstation.contact.vehicle import VehicleSettings
 
 LINK_SOURCE = "sitl://pty"
 MOCAP_SOURCE = "sitl://natnet"
@@ -169,6 +175,38 @@ def simulated_chunks(
     yield from wire.reads_until(2**62)
 
 
+def station_vehicle(airframe: Airframe) -> VehicleSettings:
+    """The station's ``[vehicle]`` for a simulated airframe, measured off its geometry.
+
+    - The ``cylinder`` layout (the simple engine's body): the cylinder's radius and height.
+    - A guarded quadrotor: its layout, arm length and guard plane; each guard to the rim's outer
+      face (centreline radius + tube); the central box; legs down to the feet's outer surface.
+      The station's legs are vertical rods on the arm diagonals while the simulated ones splay
+      outwards, so the station's rods stand where the feet are (their horizontal distance from
+      the centre plus the leg's radius): a side contact low on the body meets the feet.
+    """
+    if airframe.layout == "cylinder":
+        return VehicleSettings(
+            shape="cylinder", radius_m=airframe.cylinder_radius, height_m=airframe.cylinder_height
+        )
+    feet = max(float(np.hypot(foot[0], foot[1])) for _, foot in airframe.legs())
+    return VehicleSettings(
+        shape="guards",
+        layout=airframe.layout,  # type: ignore[arg-type]
+        arm_length_m=airframe.arm_length,
+        guard_radius_m=airframe.guard_radius + airframe.guard_tube,
+        guard_z_m=airframe.guard_z,
+        body_half_m=tuple(airframe.body_half),  # type: ignore[arg-type]
+        leg_length_m=round(airframe.bottom - airframe.body_half[2], 4),
+        leg_offset_m=round(feet + airframe.leg_radius, 4),  # 0.1 mm: a readable table
+    )
+
+
+def vehicle_config(airframe: Airframe) -> str:
+    """:func:`station_vehicle` as the ``[vehicle]`` TOML table stored in the recording."""
+    return "[vehicle]\n" + to_toml(station_vehicle(airframe))
+
+
 def write_simulation(
     sim: Any,
     path: str,
@@ -197,6 +235,7 @@ def write_simulation(
     meta = layout.station_metadata(
         station_version="sitl",
         created_by=created_by,
+        config=vehicle_config(sim.vehicle.body.airframe),
         sources=[LINK_SOURCE, MOCAP_SOURCE],
         extra={"sitl_seed": str(seed), "wire_model": json.dumps(asdict(wire), sort_keys=True)},
     )

@@ -656,7 +656,9 @@ DEFAULT_VARIANTS = (
 #: The detector's vehicle body per engine, as a user describes their drone in ``[vehicle]``:
 #: the simple engine collides with the paper's cylinder, the MuJoCo airframe with its guards
 #: (rings of 0.125 m centreline radius and 0.01 m tube on 0.17 m arms, a 12 x 8 x 5 cm body,
-#: 8 cm legs; ``firmware_bridge/sitl/airframe.py``).
+#: 8 cm legs; ``firmware_bridge/sitl/airframe.py``). Rounded as a user would measure it: the
+#: exact table the recording stores (``acquisition.sim_recording.station_vehicle``) differs by
+#: under 1 cm (the feet), which ``tests/unit/acquisition/test_sim_vehicle.py`` holds.
 VEHICLE = {
     "simple": (),
     "mujoco": (

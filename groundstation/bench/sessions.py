@@ -12,7 +12,9 @@ replay --map final`` would, and keeps every task's outputs. The flights:
   options replaced by ``--gust-rate 0`` (same seed, no false contacts).
 
 A flight of engine E is replayed with the ``[vehicle]`` settings a user gives for that airframe
-(``bench.detector.VEHICLE[E]``) before ``--set`` and the variant's overrides.
+(``bench.detector.VEHICLE[E]``) before ``--set`` and the variant's overrides; they replace the
+simulator's exact airframe that the recording stores (which ``--logs`` recordings start from, as
+``replay`` does), so the map is judged on a user's description of the body, not the model's.
 
 Summary (per variant and per group: each engine, all engines pooled, the bundled logs)
 --------------------------------------------------------------------------------------

@@ -64,12 +64,12 @@ def resolve_logs(paths: list[str]) -> list[Path]:
 
 
 def run_batch(args: argparse.Namespace) -> int:
-    from groundstation.config import load_config
     from groundstation.errors import ConfigError
     from groundstation.pipeline.batch import Variant, plan_batch
     from groundstation.pipeline.batch_outputs import write_summary
     from groundstation.pipeline.pooling import summarize, summary_markdown
     from groundstation.runtime.batch import Cluster, execute, log_input
+    from groundstation.runtime.configuration import recorded_note, recording_resolver
 
     if args.snapshots < 0:
         raise ConfigError(f"--snapshots must be >= 0, got {args.snapshots}")
@@ -78,10 +78,12 @@ def run_batch(args: argparse.Namespace) -> int:
     plan = plan_batch(
         logs,
         variants,
-        lambda ov: load_config(args.config, ov),
+        recording_resolver(args.config),
         base_overrides=args.set,
         map_mode=args.map,
     )
+    for line in recorded_note([log.recorded for log in logs], "batch"):
+        print(line, file=sys.stderr)
     out = Path(args.out)
     with Cluster(args.scheduler, args.workers) as cluster:
         print(

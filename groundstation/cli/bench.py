@@ -449,6 +449,7 @@ def run_sessions(args: argparse.Namespace) -> int:
     from groundstation.pipeline.batch_outputs import write_summary
     from groundstation.pipeline.pooling import summarize, summary_markdown
     from groundstation.runtime.batch import Cluster, execute, log_input, run_all
+    from groundstation.runtime.configuration import recorded_note, recording_resolver
 
     variants = [Variant.parse(v) for v in args.variant]
     engines = [e.strip() for e in args.engines.split(",") if e.strip()]
@@ -497,9 +498,11 @@ def run_sessions(args: argparse.Namespace) -> int:
                                   engine=f.spec.engine, role=f.role, pair=f.pair)
                     )  # fmt: skip
         plan = plan_batch(
-            logs, variants, lambda ov: load_config(args.config, ov),
+            logs, variants, recording_resolver(args.config),
             base_overrides=args.set, map_mode=args.map,
         )  # fmt: skip
+        for line in recorded_note([log.recorded for log in logs], "bench sessions"):
+            print(line, file=sys.stderr)
         print(
             f"bench sessions: {len(logs)} logs x {len(plan.variants)} variants = "
             f"{len(plan.tasks)} tasks on {cluster.description}",

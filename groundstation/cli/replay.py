@@ -204,27 +204,16 @@ def _progress_offline(quiet: bool):
 
 def _resolve(log: Path, args: argparse.Namespace):
     """The recorded configuration as the base, ``--config``/``--set`` on top (said on stderr)."""
-    import warnings
+    from groundstation.runtime.configuration import (
+        recorded_text,
+        resolve_for_recording,
+        settings_note,
+    )
 
-    from groundstation.acquisition.segments import open_session
-    from groundstation.runtime.configuration import recorded_base, resolve
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        with open_session(log) as rec:
-            tree, what = recorded_base(rec.metadata())
-    resolved = resolve(args.config, args.set, base=tree, base_name=f"{log.name}: {what}")
+    resolved = resolve_for_recording(recorded_text(log), args.config, args.set)
     if not args.quiet:
-        on_top = " with --config/--set on top" if (args.config or args.set) else ""
-        base = f"{what}{on_top}" if what else f"defaults{on_top} (the log holds no configuration)"
-        print(f"replay: settings: {base}", file=sys.stderr, flush=True)
-        if resolved.skipped:
-            print(
-                "replay: recorded settings this version does not use, skipped: "
-                + ", ".join(resolved.skipped),
-                file=sys.stderr,
-                flush=True,
-            )
+        for line in settings_note(resolved, bool(args.config or args.set)):
+            print(f"replay: {line}", file=sys.stderr, flush=True)
     return resolved
 
 

@@ -82,12 +82,16 @@ class LogInput:
         Settings this log needs before the batch's own (e.g. its airframe's ``[vehicle]``).
     labels : tuple of (str, str)
         Free tags carried into the summary (``engine``, ``role``, ``pair``...).
+    recorded : str
+        The configuration stored in the recording (TOML, "" if none): the base its settings are
+        resolved on, as ``replay`` does (a live session's settings, a SITL flight's airframe).
     """
 
     path: str
     sha256: str
     overrides: tuple[str, ...] = ()
     labels: tuple[tuple[str, str], ...] = ()
+    recorded: str = ""
 
     @property
     def name(self) -> str:
@@ -160,7 +164,7 @@ def config_hash(config: Config, map_mode: str = "live", checkpoints: int | None 
 def plan_batch(
     logs: Sequence[LogInput],
     variants: Sequence[Variant],
-    resolve: Callable[[Sequence[str]], Config],
+    resolve: Callable[[str, Sequence[str]], Config],
     *,
     base_overrides: Sequence[str] = (),
     map_mode: str = "live",
@@ -174,8 +178,10 @@ def plan_batch(
     variants : sequence of Variant
         Names must be unique; none means one variant ``default``.
     resolve : callable
-        ``overrides -> Config`` (``load_config`` bound to the ``--config`` file); raises
-        ``ConfigError`` on a bad setting, before any work.
+        ``(recorded, overrides) -> Config``: the log's recorded configuration text
+        (:attr:`LogInput.recorded`) as the base, the ``--config`` file and ``overrides`` on
+        top (``runtime.configuration.resolve_for_recording``); raises ``ConfigError`` on a bad
+        setting, before any work.
     base_overrides : sequence of str
         ``--set`` items of the batch; a log's own overrides come first, the variant's last.
     """
@@ -191,14 +197,14 @@ def plan_batch(
     if not logs:
         raise ConfigError("a batch needs at least one log")
     cells: list[Cell] = []
-    cache: dict[tuple[str, ...], tuple[Config, str]] = {}
+    cache: dict[tuple[str, tuple[str, ...]], tuple[Config, str]] = {}
     for v in variants:
         for log in logs:
-            overrides = (*log.overrides, *base_overrides, *v.overrides)
-            if overrides not in cache:
-                cfg = resolve(list(overrides))
-                cache[overrides] = (cfg, config_hash(cfg, map_mode, checkpoints))
-            cfg, h = cache[overrides]
+            key = (log.recorded, (*log.overrides, *base_overrides, *v.overrides))
+            if key not in cache:
+                cfg = resolve(log.recorded, list(key[1]))
+                cache[key] = (cfg, config_hash(cfg, map_mode, checkpoints))
+            cfg, h = cache[key]
             task = Task(log.path, log.sha256, cfg, h, map_mode, checkpoints)
             cells.append(Cell(v.name, log, task))
     return Plan(tuple(cells), variants, tuple(base_overrides))

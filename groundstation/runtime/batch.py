@@ -36,6 +36,7 @@ from typing import Any
 from groundstation.errors import ConfigError
 from groundstation.pipeline.batch import DONE, LogInput, Plan, Task
 from groundstation.pipeline.batch_outputs import error_text, read_record, record_failure, run_task
+from groundstation.runtime.configuration import recorded_text
 
 #: Environment of local workers: one BLAS/OpenMP thread each (workers = cores).
 ONE_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -51,9 +52,11 @@ def file_sha256(path: str | Path) -> str:
 
 
 def log_input(path: str | Path, overrides: Sequence[str] = (), **labels: str) -> LogInput:
-    """A :class:`LogInput` for an existing file (absolute path, content hash)."""
+    """A :class:`LogInput` for an existing file (absolute path, content hash, the configuration
+    recorded in it)."""
     p = Path(path).resolve()
-    return LogInput(str(p), file_sha256(p), tuple(overrides), tuple(sorted(labels.items())))
+    labelled = tuple(sorted(labels.items()))
+    return LogInput(str(p), file_sha256(p), tuple(overrides), labelled, recorded_text(p))
 
 
 class Cluster:

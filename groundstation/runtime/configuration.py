@@ -7,9 +7,12 @@ worker of the session reads that file (:func:`worker_config`) instead of re-pars
 the recorder stores the same text, every section, in the recording's metadata, so a replay
 starts from exactly the settings the session ran with.
 
-A replay uses the recorded configuration as its base (:func:`recorded_base`); the user's
-``--config`` and ``--set`` apply on top. Keys the running version does not know (a recording
-from a newer or older version) are reported and skipped (:func:`known_tables`), never fatal.
+Whatever replays a recording (``replay``, ``batch``, ``bench sessions --logs``, ``calibrate``,
+``export foxglove``) uses the configuration recorded in it as its base
+(:func:`resolve_for_recording`; a SITL recording holds its simulated airframe's ``[vehicle]``);
+the user's ``--config`` and ``--set`` apply on top. Keys the running version does not know (a
+recording from a newer or older version) are reported and skipped (:func:`known_tables`), never
+fatal.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 import tomllib
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -144,6 +147,89 @@ def recorded_base(meta: Mapping[str, str] | None) -> tuple[dict[str, Any], str]:
         return {}, f"its configuration is not valid TOML ({exc}); using defaults"
     sections = ", ".join(sorted(k for k, v in tree.items() if isinstance(v, dict)))
     return tree, f"the configuration recorded in the log ([{sections}])"
+
+
+def recorded_text(log: str | Path) -> str:
+    """The configuration text stored in a recording's (first segment's) ``groundstation``
+    metadata; "" when it holds none or cannot be read as a recording (whoever replays it
+    reports that error)."""
+    import warnings
+
+    from groundstation.acquisition.segments import open_session
+    from groundstation.errors import GroundstationError
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with open_session(log) as rec:
+                return (rec.metadata() or {}).get("config", "")
+    except (GroundstationError, OSError, ValueError):
+        return ""
+
+
+def resolve_for_recording(
+    recorded: str, config_path: str | Path | None = None, overrides: Sequence[str] = ()
+) -> Resolved:
+    """:func:`resolve` on a recording's configuration text (:func:`recorded_text`) as the base;
+    ``Resolved.base`` describes that base ("defaults" when the recording holds none)."""
+    tree, what = recorded_base({"config": recorded})
+    return resolve(config_path, overrides, base=tree, base_name=what or "defaults")
+
+
+def settings_note(resolved: Resolved, on_top: bool) -> list[str]:
+    """What a command replaying a recording says about its settings (one line each): where
+    the base came from, and the recorded keys this version skipped."""
+    more = " with --config/--set on top" if on_top else ""
+    if resolved.base == "defaults":
+        lines = [f"settings: defaults{more} (the log holds no configuration)"]
+    else:
+        lines = [f"settings: {resolved.base}{more}"]
+    if resolved.skipped:
+        lines.append(
+            "recorded settings this version does not use, skipped: " + ", ".join(resolved.skipped)
+        )
+    return lines
+
+
+def recording_resolver(config_path: str | Path | None) -> Callable[[str, Sequence[str]], Config]:
+    """``(recorded, overrides) -> Config`` for ``pipeline.batch.plan_batch``: each log's
+    recorded configuration, then ``config_path``, then the overrides."""
+
+    def resolve_one(recorded: str, overrides: Sequence[str]) -> Config:
+        return resolve_for_recording(recorded, config_path, overrides).config
+
+    return resolve_one
+
+
+def recorded_note(recorded: Sequence[str], command: str) -> list[str]:
+    """What a command replaying many recordings says about their settings' bases: how many
+    logs hold a recorded configuration (and which tables), which hold an unreadable one, and
+    recorded keys this version skipped."""
+    texts = [t for t in recorded if t.strip()]
+    if not texts:
+        return []
+    tables: set[str] = set()
+    skipped: set[str] = set()
+    broken = 0
+    for text in texts:
+        tree, what = recorded_base({"config": text})
+        broken += not tree and "not valid TOML" in what
+        tables.update(k for k, v in tree.items() if isinstance(v, dict))
+        skipped.update(resolve_for_recording(text).skipped)
+    used = len(texts) - broken
+    rest = "; the rest from the defaults" if used < len(recorded) else ""
+    lines = [
+        f"{command}: {used} of {len(recorded)} logs start from the configuration recorded in "
+        f"them ([{', '.join(sorted(tables))}]), --config/--set on top{rest}"
+    ]
+    if broken:
+        lines.append(f"{command}: {broken} log(s) hold a configuration that is not valid TOML")
+    if skipped:
+        lines.append(
+            f"{command}: recorded settings this version does not use, skipped: "
+            + ", ".join(sorted(skipped))
+        )
+    return lines
 
 
 def write_session_config(directory: str | Path, resolved: Resolved) -> Path:

@@ -47,7 +47,7 @@ def _plan():
                  (("engine", "mujoco"), ("role", "control"))),
         LogInput("/r/wall.mcap", "5" * 64, (), (("engine", "simple"), ("role", "bundled"))),
     ]  # fmt: skip
-    return plan_batch(logs, [Variant("base")], lambda ov: load_config(None, list(ov)))
+    return plan_batch(logs, [Variant("base")], lambda _, ov: load_config(None, list(ov)))
 
 
 def _rec(chamfer):

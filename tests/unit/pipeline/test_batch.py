@@ -18,12 +18,16 @@ from groundstation.pipeline.pooling import (
     summary_markdown,
     u_auc,
 )
+from groundstation.runtime.configuration import recording_resolver
 
 A = LogInput("/data/a.mcap", "a" * 64)
 B = LogInput("/data/b.mcap", "b" * 64, overrides=("vehicle.shape=guards",))
 
 
-def resolve(overrides):
+resolve = recording_resolver(None)
+
+
+def settings(overrides):
     return load_config(None, list(overrides))
 
 
@@ -33,7 +37,7 @@ def test_variant_parsing_keeps_commas_inside_values():
     assert v.overrides == ("mapping.lengthscale_min=0.3", "contact.external_spacing_m=0")
     v = Variant.parse("box:surface.region_min=0,0,0,surface.region_max=8,4,2")
     assert v.overrides == ("surface.region_min=0,0,0", "surface.region_max=8,4,2")
-    resolve(v.overrides)  # and they are valid settings
+    settings(v.overrides)  # and they are valid settings
     with pytest.raises(ConfigError, match="key=value"):
         Variant.parse("x:mapping.lengthscale_min")
     with pytest.raises(ConfigError, match="name"):
@@ -41,14 +45,14 @@ def test_variant_parsing_keeps_commas_inside_values():
 
 
 def test_config_hash_follows_the_resolved_settings_not_their_spelling():
-    base = config_hash(resolve([]))
-    assert base == config_hash(resolve([]))
+    base = config_hash(settings([]))
+    assert base == config_hash(settings([]))
     # the default value spelled out is the same configuration, so the same task
-    assert config_hash(resolve(["contact.threshold_g=1.2"])) == base
-    assert config_hash(resolve(["contact.threshold_g=1.0"])) != base
-    assert config_hash(resolve([]), "final") != base
-    assert config_hash(resolve([]), "final", 2) != config_hash(resolve([]), "final")
-    assert config_hash(resolve([]), "final", 0) != config_hash(resolve([]), "final")  # growth
+    assert config_hash(settings(["contact.threshold_g=1.2"])) == base
+    assert config_hash(settings(["contact.threshold_g=1.0"])) != base
+    assert config_hash(settings([]), "final") != base
+    assert config_hash(settings([]), "final", 2) != config_hash(settings([]), "final")
+    assert config_hash(settings([]), "final", 0) != config_hash(settings([]), "final")  # growth
     assert len(base) == 64 and int(base, 16) >= 0
 
 
@@ -68,6 +72,21 @@ def test_plan_makes_one_task_per_distinct_log_and_settings():
     b_low = next(c for c in plan.cells if c.log is B and c.variant == "low")
     assert b_low.task.config.vehicle.shape == "guards"  # the log's own settings
     assert b_low.task.config.contact.threshold_g == 1.0  # the variant's
+
+
+def test_plan_starts_from_each_logs_recorded_configuration():
+    """As ``replay`` does: a log's recorded settings (a live session's, a SITL flight's
+    airframe) are its base; the log's, the batch's and the variant's overrides go on top."""
+    guarded = '[vehicle]\nshape = "guards"\narm_length_m = 0.2\n[contact]\nthreshold_g = 2.0\n'
+    C = LogInput("/data/c.mcap", "c" * 64, recorded=guarded)
+    low = Variant("low", ("contact.threshold_g=1.0",))
+    plan = plan_batch([C, A], [Variant("base"), low], resolve)
+    c_base, a_base, c_low, a_low = (cell.task.config for cell in plan.cells)
+    assert c_base.vehicle.shape == "guards" and c_base.vehicle.arm_length_m == 0.2
+    assert c_base.contact.threshold_g == 2.0
+    assert c_low.vehicle.shape == "guards" and c_low.contact.threshold_g == 1.0
+    assert a_base == settings([]) and a_low == settings(low.overrides)
+    assert plan.cells[0].task.config_hash != plan.cells[1].task.config_hash
 
 
 def test_plan_order_log_then_batch_then_variant():

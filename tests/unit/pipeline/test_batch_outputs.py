@@ -11,7 +11,7 @@ from groundstation.pipeline.batch_outputs import read_record, run_task, write_js
 
 
 def _task(path, sha="0" * 64):
-    plan = plan_batch([LogInput(str(path), sha)], [], lambda ov: load_config(None, list(ov)))
+    plan = plan_batch([LogInput(str(path), sha)], [], lambda _, ov: load_config(None, list(ov)))
     return plan.tasks[0]
 
 

@@ -55,3 +55,17 @@ def test_workers_read_the_session_file_unless_given_flags(tmp_path):
     assert worker_config(tmp_path).contact.threshold_g == 0.7
     assert worker_config(tmp_path, None, ["contact.threshold_g=0.5"]).contact.threshold_g == 0.5
     assert worker_config(tmp_path / "none") == Config()
+
+
+def test_a_batch_says_which_logs_start_from_their_recorded_configuration():
+    from groundstation.runtime.configuration import recorded_note
+
+    texts = ["", '[vehicle]\nshape = "guards"\n', "[contact]\nfrom_the_future = 1\n", "[[[ bad"]
+    lines = recorded_note(texts, "batch")
+    assert lines[0] == (
+        "batch: 2 of 4 logs start from the configuration recorded in them ([contact, vehicle]), "
+        "--config/--set on top; the rest from the defaults"
+    )
+    assert "1 log(s) hold a configuration that is not valid TOML" in lines[1]
+    assert lines[2].endswith("skipped: contact.from_the_future")
+    assert recorded_note(["", ""], "batch") == []
