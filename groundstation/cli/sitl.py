@@ -198,6 +198,14 @@ def add_sitl_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--force", action="store_true", help="replace an existing --record file")
     parser.add_argument(
+        "--station-config",
+        type=Path,
+        default=None,
+        metavar="FILE.toml",
+        help="write the station's [vehicle] for the simulated airframe to this file, for "
+        "'groundstation live/record --config FILE.toml' (a --record log stores it anyway)",
+    )
+    parser.add_argument(
         "--log-commands",
         type=Path,
         default=None,
@@ -290,6 +298,39 @@ def run_sitl(args: argparse.Namespace) -> int:
         return 2
 
 
+def _station_config(args: argparse.Namespace, sim: Simulation) -> None:
+    """``--station-config``: the station's ``[vehicle]`` for this airframe, written for a live
+    session's ``--config``; without it a live run of an airframe other than the default
+    cylinder says how to get it (the station cannot learn the body over MAVLink)."""
+    from groundstation.acquisition.sim_recording import vehicle_config
+
+    text = vehicle_config(sim.vehicle.body.airframe)
+    if args.station_config is not None:
+        try:
+            args.station_config.write_text(
+                f"# groundstation sitl --physics {args.physics}: the simulated airframe\n{text}",
+                encoding="utf-8",
+            )
+        except OSError as exc:
+            raise BridgeError(
+                f"--station-config {args.station_config}: cannot write it ({exc.strerror})"
+            ) from exc
+        where = args.station_config
+        print(
+            f"sitl: the station's [vehicle] for this airframe in {where} "
+            f"(groundstation live --config {where})",
+            file=sys.stderr,
+            flush=True,
+        )
+    elif args.record is None and args.physics != "simple":
+        print(
+            f"sitl: the station must know this airframe (physics {args.physics}): rerun with "
+            "--station-config FILE.toml and start the station with --config FILE.toml",
+            file=sys.stderr,
+            flush=True,
+        )
+
+
 def _run(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     pilot = args.pilot
@@ -325,6 +366,7 @@ def _run(args: argparse.Namespace) -> int:
 
         key = load_signing_key(args.signing_key)
     sim = Simulation(scene, pilot, args.seed, args.duration, vs, mocap, signing_key=key)
+    _station_config(args, sim)
     if args.record is not None:
         return _record(args, sim)
 

@@ -76,3 +76,19 @@ def test_batch_starts_each_log_from_its_recorded_airframe(mujoco_log, tmp_path):
             tree = tomllib.loads((folder / "settings.toml").read_text())
             shapes[tree["vehicle"]["shape"]] = tree["vehicle"]["arm_length_m"]
     assert shapes == {"guards": 0.17, "cylinder": 0.17}  # the variant's --set on top
+
+
+def test_the_sitl_writes_the_stations_vehicle_for_a_live_session(tmp_path, capsys):
+    from groundstation.config import load_config
+
+    toml = tmp_path / "airframe.toml"
+    argv = ["sitl", "--physics", "mujoco", "--speed", "max", "--duration", "1",
+            "--pilot", "script:hover", "--record", str(tmp_path / "x.mcap"),
+            "--station-config", str(toml)]  # fmt: skip
+    assert cli_main(argv) == 0
+    assert load_config(str(toml)).vehicle == station_vehicle(Airframe())
+    assert f"groundstation live --config {toml}" in capsys.readouterr().err
+    argv[-1] = str(tmp_path / "no" / "such" / "dir.toml")
+    argv[argv.index("--record") + 1] = str(tmp_path / "y.mcap")
+    assert cli_main(argv) == 2
+    assert "--station-config" in capsys.readouterr().err and not (tmp_path / "y.mcap").exists()
