@@ -501,7 +501,10 @@ def run_sessions(args: argparse.Namespace) -> int:
             logs, variants, recording_resolver(args.config),
             base_overrides=args.set, map_mode=args.map,
         )  # fmt: skip
-        for line in recorded_note([log.recorded for log in logs], "bench sessions"):
+        on_top = "--config/--set on top"
+        if not args.logs:
+            on_top = f"the bench's airframe (bench.detector.VEHICLE) and {on_top}"
+        for line in recorded_note([log.recorded for log in logs], "bench sessions", on_top):
             print(line, file=sys.stderr)
         print(
             f"bench sessions: {len(logs)} logs x {len(plan.variants)} variants = "

@@ -201,10 +201,12 @@ def recording_resolver(config_path: str | Path | None) -> Callable[[str, Sequenc
     return resolve_one
 
 
-def recorded_note(recorded: Sequence[str], command: str) -> list[str]:
+def recorded_note(
+    recorded: Sequence[str], command: str, on_top: str = "--config/--set on top"
+) -> list[str]:
     """What a command replaying many recordings says about their settings' bases: how many
-    logs hold a recorded configuration (and which tables), which hold an unreadable one, and
-    recorded keys this version skipped."""
+    logs hold a recorded configuration (and which tables, ``on_top`` saying what applies over
+    it), which hold an unreadable one, and recorded keys this version skipped."""
     texts = [t for t in recorded if t.strip()]
     if not texts:
         return []
@@ -220,7 +222,7 @@ def recorded_note(recorded: Sequence[str], command: str) -> list[str]:
     rest = "; the rest from the defaults" if used < len(recorded) else ""
     lines = [
         f"{command}: {used} of {len(recorded)} logs start from the configuration recorded in "
-        f"them ([{', '.join(sorted(tables))}]), --config/--set on top{rest}"
+        f"them ([{', '.join(sorted(tables))}]), {on_top}{rest}"
     ]
     if broken:
         lines.append(f"{command}: {broken} log(s) hold a configuration that is not valid TOML")
