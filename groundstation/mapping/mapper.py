@@ -163,8 +163,9 @@ class Mapper:
         self._factory = model_factory or default_model_factory
         if self.mapping.engine == "mixture" and model_factory is None:
             self._model = SurfaceModel(
-                self.mapping, self.surface, vehicle, internal_depth_m, decide_p=self.settings.flag_p
-            )
+                self.mapping, self.surface, vehicle, internal_depth_m,
+                decide_p=self.settings.flag_p, lone_decide_p=self.settings.lone_flag_p,
+            )  # fmt: skip
         else:
             self._model = self._factory(self.mapping, self.surface)
         self._obs: dict[int, Observation] = {}
@@ -342,14 +343,15 @@ class Mapper:
         )
         timings.update({k: v for k, v in model.timings_.items() if k in ("field_s",)})
         timings["total_s"] = time.perf_counter() - t0
-        oid, u, pf = model.by_observation()
+        oid, u, pf, false = model.by_observation()
         u_by = dict(zip(oid.tolist(), u.tolist(), strict=True))
         p_by = dict(zip(oid.tolist(), pf.tolist(), strict=True))
+        f_by = dict(zip(oid.tolist(), false.tolist(), strict=True))
         u_arr = np.array([u_by.get(i, math.nan) for i in ids.tolist()], dtype=np.float64)
         p_arr = np.array([p_by.get(i, math.nan) for i in ids.tolist()], dtype=np.float64)
-        with np.errstate(invalid="ignore"):
-            flags = np.where(p_arr > s.flag_p, FLAG_FALSE_POSITIVE, 0).astype(np.uint8)
-        flagged = tuple(sorted(e for e, p in model.event_posteriors().items() if p > s.flag_p))
+        f_arr = np.array([f_by.get(i, False) for i in ids.tolist()], dtype=bool)
+        flags = np.where(f_arr, FLAG_FALSE_POSITIVE, 0).astype(np.uint8)
+        flagged = model.flagged_events()
         hyper = {
             "lengthscale": summary.lengthscale,
             "signal_var": summary.signal_var,

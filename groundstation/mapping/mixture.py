@@ -14,8 +14,9 @@ Fit (an EM on the two-component mixture, one responsibility per group)
 ----------------------------------------------------------------------
 1. Responsibilities ``r_g = P(z_g = false | data)`` start at the priors (or the last fit's).
 2. The GP is fitted with every group decided: precision ``1 / s_i^2`` for the rows of a group
-   with ``r_g <= decide_p``, ``1 / s_out^2`` for the others (a classification EM: the mean-field
-   expectation of the precision would let a 90 % false group still draw its phantom patch),
+   decided true (``r_g`` at most its decision line), ``1 / s_out^2`` for the others (a
+   classification EM: the mean-field expectation of the precision would let a 90 % false
+   group still draw its phantom patch),
    factorised in the B form (``_linalg.factorize_blocks``: only the blocks of P step 3 needs).
 3. Each *burst* (groups close in time and space: ``mapping/events.py``) is left out as a whole,
    in closed form from ``P = (K + W^-1)^-1``: ``e_B = P_BB^-1 a_B`` is the residual of the
@@ -39,9 +40,9 @@ The kernel hyperparameters maximise the weighted GP's evidence ``log N(y | mu0, 
 resolution), when asked for (``learn_kernel``): at the first iteration of a fit.
 
 ``posterior_false_`` is a calibrated probability per group; a group is decided (fitted and
-flagged) false when it exceeds ``decide_p``: 1/2 minimises errors for equal costs, and ``c / (1 +
-c)`` minimises the expected cost when trusting a false contact costs ``1 / c`` times as much as
-dropping a true one.
+flagged) false when it exceeds its decision line (``Groups.decide_p``, or the estimator's
+``decide_p`` for all): 1/2 minimises errors for equal costs, and ``c / (1 + c)`` minimises the
+expected cost when trusting a false contact costs ``1 / c`` times as much as dropping a true one.
 """
 
 from __future__ import annotations
@@ -126,7 +127,7 @@ class MixtureFit:
     n_train : int
     n_groups : int
     n_flagged : int
-        Groups decided false (``posterior_false > decide_p``).
+        Groups decided false (posterior P(false) above the group's decision line).
     reasons : tuple of str
         Why the fit may not be trusted (empty when fine).
     """
@@ -161,6 +162,9 @@ class Groups:
         For a trusted row (``row_group`` -1), the group it is left out with when that group's
         burst is tested, -1 for none: the vehicle's own free-space samples at a contact event
         (``mapping/training.py``). It stays in the fit with its own precision.
+    decide_p : (G,) float64, optional
+        Each group's decision line: decided false when its posterior P(false) exceeds it
+        (default: the estimator's ``decide_p`` for every group).
     """
 
     row_group: np.ndarray
@@ -168,6 +172,7 @@ class Groups:
     burst: np.ndarray
     extra_llr: np.ndarray
     companion: np.ndarray | None = None
+    decide_p: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         g = self.prior_false.shape[0]
@@ -183,6 +188,16 @@ class Groups:
                 raise InputDataError("groups: companion needs one group (or -1) per row")
             if np.any((c >= 0) & (self.row_group >= 0)):
                 raise InputDataError("groups: a row of a group cannot be another's companion")
+        if self.decide_p is not None:
+            line = self.decide_p
+            if line.shape != (g,) or not np.all((line > 0.0) & (line < 1.0)):
+                raise InputDataError("groups: decide_p needs one line in (0, 1) per group")
+
+    def lines(self, default: float) -> np.ndarray:
+        """(G,) each group's decision line (``default`` where none is given)."""
+        if self.decide_p is None:
+            return np.full(self.prior_false.shape[0], float(default))
+        return self.decide_p
 
 
 @dataclasses.dataclass(frozen=True)
@@ -330,6 +345,7 @@ class EventMixtureGPIS:
     decide_p : float
         A group whose posterior P(false) exceeds this is decided false: fitted with the
         outlier variance, and flagged (``mapper.flag_p``; 1/2 minimises errors for equal costs).
+        ``Groups.decide_p`` gives a group its own line instead.
     """
 
     def __init__(
@@ -403,6 +419,7 @@ class EventMixtureGPIS:
         """
         X, y, s2, V, prior, r = _checked(X, y, noise_var, groups, start, directions)
         n = X.shape[0]
+        line = groups.lines(self.decide_p)
         ell, sf2 = self.bounds.clip(*(theta or (self.lengthscale, self.signal_var)))
         is_val = np.einsum("ij,ij->i", V, V) == 0.0
         center = X.mean(axis=0)
@@ -422,7 +439,7 @@ class EventMixtureGPIS:
         llr = np.zeros_like(r)
         it = 0
         for it in range(1, self.max_iter + 1):
-            w = self._precisions(s2, rg, in_group, r)
+            w = self._precisions(s2, rg, in_group, r > line)
             if it == 1:  # the kernel is fixed after the first iteration
                 if self.learn_kernel:
                     ell, sf2 = self._kernel_step(
@@ -434,21 +451,21 @@ class EventMixtureGPIS:
             logit = np.log(prior) - np.log1p(-prior) + llr + groups.extra_llr
             r_new = 1.0 / (1.0 + np.exp(-np.clip(logit, -50.0, 50.0)))
             delta = float(np.max(np.abs(r_new - r))) if r.size else 0.0
-            same = bool(np.array_equal(r_new > self.decide_p, r > self.decide_p))
-            seen.add((r > self.decide_p).tobytes())
+            same = bool(np.array_equal(r_new > line, r > line))
+            seen.add((r > line).tobytes())
             r = r_new
             # the fit depends on the decisions only: once none flips and the posteriors
             # settle, another iteration changes nothing the map shows
             if delta < self.tol or (same and delta < 10.0 * self.tol):
                 converged = True
                 break
-            if not same and (r > self.decide_p).tobytes() in seen:
+            if not same and (r > line).tobytes() in seen:
                 # decisions came back to an earlier set: a cycle between groups that explain
                 # each other away; stop with the posteriors of this iteration
                 cycled = True
                 break
         # the posterior of the final decisions (the last factor already is, unless one flipped)
-        w_final = self._precisions(s2, rg, in_group, r)
+        w_final = self._precisions(s2, rg, in_group, r > line)
         if fac is None or not np.array_equal(w_final, w):
             fac = factorize_blocks(K, w_final, resid, self.prior_mean, burst_rows[:0])
         w = w_final
@@ -471,7 +488,7 @@ class EventMixtureGPIS:
             at_bounds=at,
             n_train=n,
             n_groups=int(r.size),
-            n_flagged=int(np.sum(r > self.decide_p)),
+            n_flagged=int(np.sum(r > line)),
             reasons=() if converged else (("decisions_cycle",) if cycled else ("not_converged",)),
         )
         return self
@@ -491,19 +508,20 @@ class EventMixtureGPIS:
         X, y, s2, V, _, r = _checked(X, y, noise_var, groups, start, directions)
         is_val = np.einsum("ij,ij->i", V, V) == 0.0
         rg = groups.row_group
-        w = self._precisions(s2, rg, rg >= 0, r)
+        w = self._precisions(s2, rg, rg >= 0, r > groups.lines(self.decide_p))
         ell, sf2 = self.bounds.clip(self.lengthscale, self.signal_var)
         resid = y[is_val] - self.prior_mean
         return self._kernel_step(X[is_val], X.mean(axis=0), w[is_val], resid, ell, sf2)
 
-    def _precisions(self, s2, rg, in_group, r) -> np.ndarray:
-        """Row precisions for the GP: a group decided false (``r > decide_p``) counts with the
-        outlier variance, one decided true with its own noise. (The mean-field expectation
-        ``(1 - r) / s^2 + r / s_out^2`` lets a group that is 90 % false still pull the surface
-        with a tenth of a true contact's weight, a phantom patch the map then draws.)"""
+    def _precisions(self, s2, rg, in_group, decided) -> np.ndarray:
+        """Row precisions for the GP: a group decided false (``decided``, (G,) bool: its
+        posterior above its line) counts with the outlier variance, one decided true with its
+        own noise. (The mean-field expectation ``(1 - r) / s^2 + r / s_out^2`` lets a group
+        that is 90 % false still pull the surface with a tenth of a true contact's weight, a
+        phantom patch the map then draws.)"""
         w = 1.0 / s2
-        if r.size:
-            false = in_group & (r[np.maximum(rg, 0)] > self.decide_p)
+        if decided.size:
+            false = in_group & decided[np.maximum(rg, 0)]
             w = np.where(false, 1.0 / (_EXCLUDED * self.outlier_var), w)
         return w
 

@@ -106,6 +106,7 @@ def training_policy(
         plane_max_p_false=mapping.plane_max_p_false,
         settled_voxel_m=mapping.settled_voxel_m,
         companion_s=mapping.companion_s,
+        lone_reach_m=mapping.lone_reach_m,
     )
 
 
@@ -149,12 +150,23 @@ class SurfaceModel:
     decide_p : float
         An event whose posterior P(false) exceeds this is decided false: left out of the map
         and flagged (the mapper passes ``mapper.flag_p``: one rule for both).
+    lone_decide_p : float
+        The line for an *uncorroborated* event instead, one no other event's contact lies
+        within ``mapping.lone_reach_m`` of (the mapper passes ``mapper.lone_flag_p``). Nothing
+        in the data speaks for or against such an event, so its posterior is its prior, and
+        the costs of the two errors differ: a false one trusted draws a whole phantom patch
+        with no surface near to bound it, a true one dropped loses one touch until the next
+        touch beside it corroborates it (and both are then decided on the ``decide_p`` line).
 
     Attributes (after ``fit``)
     --------------------------
     fit_ : EventMixtureGPIS
     summary_ : MixtureFit
     training_set_ : TrainingSet
+    posterior_false_ : (G,) float64
+        Each event's posterior P(false).
+    decided_false_ : (G,) bool
+        Each event's decision: its posterior above its line (``decide_p`` or ``lone_decide_p``).
     mode_ : "exact"
     timings_ : dict
         ``rows_s``, ``fit_s`` (last fit), ``field_s``, ``mesh_s`` (last mesh), seconds.
@@ -167,11 +179,15 @@ class SurfaceModel:
         vehicle: VehicleSettings | None = None,
         internal_depth_m: float = 0.1,
         decide_p: float = 0.5,
+        lone_decide_p: float | None = None,
     ) -> None:
-        if not 0.0 < decide_p < 1.0:
-            raise ConfigError(f"decide_p must be in (0, 1), got {decide_p!r}")
+        lone_decide_p = decide_p if lone_decide_p is None else lone_decide_p
+        for name, v in (("decide_p", decide_p), ("lone_decide_p", lone_decide_p)):
+            if not 0.0 < v < 1.0:
+                raise ConfigError(f"{name} must be in (0, 1), got {v!r}")
         self.mapping = mapping
         self.decide_p = float(decide_p)
+        self.lone_decide_p = float(lone_decide_p)
         self.surface = surface
         self.vehicle = vehicle or VehicleSettings()
         self.policy = training_policy(mapping, self.vehicle, internal_depth_m)
@@ -190,14 +206,16 @@ class SurfaceModel:
     # ------------------------------------------------------------------ policy steps
 
     def rows(self, observations: Sequence[Observation]) -> TrainingSet:
-        """Step 1: rows, groups, priors, bursts, swept-volume evidence; settled events pooled,
-        except those the vehicle's body has since passed through (they are tested again)."""
+        """Step 1: rows, groups, priors, bursts, swept-volume evidence, each event's decision
+        line; settled events pooled, except those the vehicle's body has since passed through
+        (they are tested again)."""
         ts = build_training_set(observations, self.policy, frozenset(self._settled))
         refuted = [ts.keys[g] for g in np.flatnonzero(ts.settled & ts.swept)]
         if refuted:
             self._settled.difference_update(refuted)
             ts = build_training_set(observations, self.policy, frozenset(self._settled))
-        return ts
+        line = np.where(ts.lone, self.lone_decide_p, self.decide_p)
+        return dataclasses.replace(ts, groups=dataclasses.replace(ts.groups, decide_p=line))
 
     def learn_kernel_now(self, ts: TrainingSet) -> bool:
         """Step 2: learn the kernel until it has been learnt once (:meth:`estimate` decides
@@ -250,6 +268,7 @@ class SurfaceModel:
             burst=ts.groups.burst[gidx],
             extra_llr=ts.groups.extra_llr[gidx],
             companion=comp,
+            decide_p=ts.groups.lines(self.decide_p)[gidx],
         )
         return (
             ts.X[rows],
@@ -285,11 +304,11 @@ class SurfaceModel:
             # are new since the last fit with the current kernel first, so that a gust still
             # at its prior does not pull the kernel smoother (and the kernel learnt does not
             # depend on how many fits came before: live cadence or --map final)
-            learn = self._identified(st)
+            learn = self._identified(st, groups)
             if learn:
                 pre = self._estimator(False, warm).fit(X, y, s2, groups, start=st, directions=V)
                 st = pre.posterior_false_
-                learn = self._identified(st)
+                learn = self._identified(st, groups)
             if learn:  # only the kernel: every tile refits with it below
                 est = self._estimator(True, warm)
                 self._theta = est.learn_theta(X, y, s2, groups, start=st, directions=V)
@@ -298,7 +317,7 @@ class SurfaceModel:
         # every tile the surface can reach, also one with no shape row in its own core
         near = layout.keys_near(ts.X[shape], REACH_LENGTHSCALES * self._theta[0])
         tile_keys = {tuple(int(v) for v in k) for k in near}
-        decided = start > self.decide_p
+        decided = start > ts.groups.lines(self.decide_p)
         fitted: dict[tuple, _TileFit] = {}
         for key in sorted(tile_keys):
             rows = layout.members(ts.X, key)
@@ -341,9 +360,11 @@ class SurfaceModel:
         ell = self._theta[0]
         return TileLayout(self.mapping.learn_tile_m, max(LEARN_HALO_MIN_M, 3.0 * ell))
 
-    def _identified(self, p_false: np.ndarray) -> bool:
-        """Whether events with these P(false) identify the kernel (``learn_min_events``)."""
-        return int(np.sum(p_false <= self.decide_p)) >= self.mapping.learn_min_events
+    def _identified(self, p_false: np.ndarray, groups: Groups) -> bool:
+        """Whether events with these P(false) identify the kernel (``learn_min_events``
+        decided true)."""
+        trusted = p_false <= groups.lines(self.decide_p)
+        return int(np.sum(trusted)) >= self.mapping.learn_min_events
 
     @staticmethod
     def _learning_tile(ts: TrainingSet, start: np.ndarray, layout: TileLayout) -> tuple:
@@ -406,6 +427,7 @@ class SurfaceModel:
             self._n_theta = len(ts)
         self.training_set_ = ts
         self.posterior_false_ = post
+        self.decided_false_ = post > ts.groups.lines(self.decide_p)
         self._posterior_by_event = {ts.keys[g]: float(p) for g, p in enumerate(post)}
         fits = [f.est.fit_ for f in self._tiles.values()]
         ell, sf2 = self._theta
@@ -418,7 +440,7 @@ class SurfaceModel:
             at_bounds=self.bounds.at_bound(ell, sf2),
             n_train=len(ts),
             n_groups=int(post.size),
-            n_flagged=int(np.sum(post > self.decide_p)),
+            n_flagged=int(np.sum(self.decided_false_)),
             reasons=() if all(f.converged for f in fits) else ("not_converged",),
         )
         self.fit_ = self  # fitted marker (the tiles hold the estimators)
@@ -468,7 +490,7 @@ class SurfaceModel:
         ts = self.training_set_
         rg = ts.groups.row_group
         w = 1.0 / ts.noise_var
-        false = (rg >= 0) & (self.posterior_false_[np.maximum(rg, 0)] > self.decide_p)
+        false = (rg >= 0) & self.decided_false_[np.maximum(rg, 0)]
         return np.where(false, 1.0 / (1e4 * self.mapping.outlier_var), w)
 
     def event_posteriors(self) -> dict[int, float]:
@@ -481,27 +503,38 @@ class SurfaceModel:
             if e >= 0
         }
 
-    def by_observation(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(ids, u, p_false)`` of every observation that is a row or a group member:
+    def flagged_events(self) -> tuple[int, ...]:
+        """Detector events decided false (each above its own line), sorted."""
+        self._check()
+        ts = self.training_set_
+        return tuple(sorted(int(e) for e in ts.event_ids[self.decided_false_] if e >= 0))
+
+    def by_observation(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(ids, u, p_false, false)`` of every observation that is a row or a group member:
         ``u = 1 / w_i`` (the effective noise variance of its row, label units^2; NaN for
-        members without a row) and its event's posterior P(false) (0 for free space)."""
+        members without a row), its event's posterior P(false) (0 for free space) and whether
+        its event is decided false."""
         self._check()
         ts = self.training_set_
         post = self.posterior_false_
+        false = self.decided_false_
         w = self.weights_
-        u_by, p_by = {}, {}
+        u_by, p_by, f_by = {}, {}, {}
         for r, members in enumerate(ts.row_members):
             g = int(ts.groups.row_group[r])
             for i in members.tolist():
                 u_by[i] = 1.0 / float(w[r])
                 p_by[i] = float(post[g]) if g >= 0 else 0.0
+                f_by[i] = bool(false[g]) if g >= 0 else False
         for g, members in enumerate(ts.group_ids):
             for i in members.tolist():
                 p_by[i] = float(post[g])
+                f_by[i] = bool(false[g])
         ids = np.asarray(sorted(p_by), dtype=np.int64)
         u = np.asarray([u_by.get(i, math.nan) for i in ids.tolist()], dtype=np.float64)
         pf = np.asarray([p_by[i] for i in ids.tolist()], dtype=np.float64)
-        return ids, u, pf
+        ff = np.asarray([f_by[i] for i in ids.tolist()], dtype=bool)
+        return ids, u, pf, ff
 
     def predict(self, Xq: np.ndarray, return_std: bool = False):
         """Posterior mean (and latent std) at ``Xq`` (m, d), metres, from each point's tile
@@ -569,7 +602,7 @@ class SurfaceModel:
         the settled pool)."""
         g = self.training_set_.groups.row_group
         trusted = np.ones(g.size, dtype=bool)
-        trusted[g >= 0] = self.posterior_false_[g[g >= 0]] <= self.decide_p
+        trusted[g >= 0] = ~self.decided_false_[g[g >= 0]]
         return trusted
 
     def _clip(self) -> tuple[np.ndarray, np.ndarray]:

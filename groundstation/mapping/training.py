@@ -152,6 +152,7 @@ class TrainingPolicy:
     plane_max_p_false: float = 1.0
     settled_voxel_m: float = 0.1
     companion_s: float = 0.0
+    lone_reach_m: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -188,6 +189,9 @@ class TrainingSet:
         The group was settled: its rows are in the trusted pool (row group -1).
     n_raw : int
         Observations given.
+    lone : (G,) bool
+        *Uncorroborated*: the group has contacts and no other group's contact lies within
+        ``lone_reach_m`` of their centroid (all False with ``lone_reach_m`` 0).
     """
 
     X: np.ndarray
@@ -204,6 +208,7 @@ class TrainingSet:
     t_end_ns: np.ndarray
     settled: np.ndarray
     n_raw: int
+    lone: np.ndarray
 
     def __len__(self) -> int:
         return int(self.X.shape[0])
@@ -460,6 +465,9 @@ def build_training_set(
         t_end_ns=t_hi,
         settled=is_settled,
         n_raw=len(obs),
+        lone=_lone(contacts, cen, p.lone_reach_m) & np.isfinite(cen).all(axis=1)
+        if p.lone_reach_m > 0
+        else np.zeros(G, dtype=bool),
     )
 
 

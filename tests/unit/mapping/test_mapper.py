@@ -244,7 +244,7 @@ def _sphere_and_a_doubted_lone_touch():
 @pytest.mark.parametrize("flag_p", [0.5, 0.25])
 def test_flag_p_decides_the_map_and_the_flags_alike(flag_p):
     o, lone = _sphere_and_a_doubted_lone_touch()
-    m = Mapper(MapperSettings(flag_p=flag_p))
+    m = Mapper(MapperSettings(flag_p=flag_p, lone_flag_p=flag_p))
     m.add(o)
     fit = m.refit()
     assert fit.reliable and fit.mesh is not None and not fit.mesh.is_empty
@@ -255,3 +255,26 @@ def test_flag_p_decides_the_map_and_the_flags_alike(flag_p):
     else:
         assert 77 not in fit.flagged_events
         assert near < 0.15  # kept: the map draws it
+
+
+def test_an_uncorroborated_doubted_touch_is_decided_on_the_lone_line_until_corroborated():
+    """The lone touch the detector doubts (0.45) is flagged on the default lone line (0.2) and
+    left out of the map; a later touch the detector believes, 0.3 m from it on the same face,
+    corroborates it: both are then decided on ``flag_p`` and drawn."""
+    o, lone = _sphere_and_a_doubted_lone_touch()
+    m = Mapper(MapperSettings())
+    m.add(o)
+    fit = m.refit()
+    assert fit.flagged_events == (77,)
+    assert np.linalg.norm(fit.mesh.vertices - lone, axis=1).min() > 1.0
+    assert np.all(fit.flags[np.isin(fit.ids, [o_.id for o_ in o if o_.event_id == 77])] == 1)
+    up = np.array([0.0, 0.0, 1.0])
+    i = max(o_.id for o_ in o) + 1
+    c = lone + [0.3, 0.0, 0.0]
+    m.add([
+        Observation(i, int(20 * S), c, 0.0, up, 78, 2.0, p_false=0.01),
+        Observation(i + 1, int(20 * S), c - 0.1 * up, -1.0, up, 78, 2.0, p_false=0.01),
+    ])  # fmt: skip
+    fit = m.refit()
+    assert 77 not in fit.flagged_events and 78 not in fit.flagged_events
+    assert np.linalg.norm(fit.mesh.vertices - lone, axis=1).min() < 0.15

@@ -261,6 +261,29 @@ def test_the_decision_threshold_must_be_a_probability():
         EventMixtureGPIS(lengthscale=0.3, signal_var=0.6, bounds=BOUNDS, decide_p=1.0)
 
 
+def test_each_group_is_decided_on_its_own_line():
+    """The lone doubted event of the test above (posterior about its prior, 0.45) on a line of
+    its own: 0.25 decides it false (left out, flagged) under an estimator whose line is 1/2,
+    whatever that line; the wall's touches stay on theirs."""
+    far = np.array([3.0, 3.0, 3.0])
+    X, y, g, s2 = toy_with_event(far)
+    prior = np.r_[np.full(12, 0.01), 0.45]
+    own = dataclasses.replace(groups(g, prior), decide_p=np.r_[np.full(12, 0.5), 0.25])
+    est = EventMixtureGPIS(lengthscale=0.3, signal_var=0.6, bounds=BOUNDS, learn_kernel=False)
+    est.fit(X, y, s2, own)
+    assert 0.25 < est.posterior_false_[12] < 0.5
+    assert est.fit_.n_flagged == 1
+    np.testing.assert_allclose(est.weights_[g == 12], 1e-4, rtol=1e-6)
+    assert abs(est.predict((far - [0.1, 0, 0])[None, :])[0]) < 0.05  # nothing drawn there
+    same = EventMixtureGPIS(lengthscale=0.3, signal_var=0.6, bounds=BOUNDS, learn_kernel=False)
+    same.fit(X, y, s2, dataclasses.replace(own, decide_p=np.full(13, 0.5)))
+    assert same.fit_.n_flagged == 0  # one line of 1/2 for all: the estimator's own
+    with pytest.raises(InputDataError, match="decide_p"):
+        dataclasses.replace(own, decide_p=np.full(12, 0.5))  # one line per group
+    with pytest.raises(InputDataError, match="decide_p"):
+        dataclasses.replace(own, decide_p=np.r_[np.full(12, 0.5), 1.0])
+
+
 def test_a_cluster_cannot_vouch_for_itself_when_left_out_as_a_burst():
     X, y, g = toy(n_free=0)
     rng = np.random.default_rng(3)
@@ -518,6 +541,28 @@ def test_settled_events_are_pooled_with_their_summed_precision():
     assert [g.tolist() for g in ts.group_ids] == [g.tolist() for g in plain.group_ids]
 
 
+def test_an_event_no_other_events_contact_comes_near_is_uncorroborated():
+    """``lone``: no other event's contact within ``lone_reach_m`` of the event's own centroid;
+    a flagged or a settled neighbour corroborates as much as any (the flag is decided on it)."""
+    n = np.array([-1.0, 0.0, 0.0])
+
+    def touch(i, t, y):
+        at = np.array([0.0, y, 1.0])
+        return [
+            Observation(2 * i, int(t * 1e9), at, 0.0, n, i, 0.0, sigma_m=0.01),
+            Observation(2 * i + 1, int(t * 1e9), at - 0.1 * n, -1.0, n, i, 0.0, sigma_m=0.01),
+        ]
+
+    obs = touch(0, 0.0, 0.0) + touch(1, 5.0, 0.4) + touch(2, 10.0, 2.0)
+    ts = build_training_set(obs, TrainingPolicy(lone_reach_m=0.5))
+    assert ts.lone.tolist() == [False, False, True]
+    assert build_training_set(obs, TrainingPolicy(lone_reach_m=0.3)).lone.tolist() == [True] * 3
+    settled = frozenset({ts.keys[0]})
+    assert build_training_set(obs, TrainingPolicy(lone_reach_m=0.5), settled).lone.tolist() == [
+        False, False, True,
+    ]  # fmt: skip
+
+
 def test_a_lone_touch_goes_on_as_plane_points_and_a_crowded_one_does_not():
     """A touch with no other event's contact within ``plane_reach_m`` adds four contact rows
     that far along its tangents (in its own group, so its fate is theirs); two touches closer
@@ -549,6 +594,7 @@ def test_a_lone_touch_goes_on_as_plane_points_and_a_crowded_one_does_not():
     np.testing.assert_allclose(lone.noise_var[p], policy.contact_noise**2 + (0.5 * 0.2) ** 2)
     crowded = build_training_set(touch(0, 0.0, 0.0, 0) + touch(1, 5.0, 0.15, 1), policy)
     assert planes(crowded).sum() == 0
+    assert not lone.lone.any() and not crowded.lone.any()  # lone_reach_m 0: none uncorroborated
     off = build_training_set(touch(0, 0.0, 0.0, 0), dataclasses.replace(policy, plane_reach_m=0.0))
     assert planes(off).sum() == 0
     # a touch the detector doubts (p_false above plane_max_p_false) carries no surface on
