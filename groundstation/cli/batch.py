@@ -68,7 +68,7 @@ def run_batch(args: argparse.Namespace) -> int:
     from groundstation.pipeline.batch import Variant, plan_batch
     from groundstation.pipeline.batch_outputs import write_summary
     from groundstation.pipeline.pooling import summarize, summary_markdown
-    from groundstation.runtime.batch import Cluster, execute, log_input
+    from groundstation.runtime.batch import Cluster, execute, log_input, software_id
     from groundstation.runtime.configuration import recorded_note, recording_resolver
 
     if args.snapshots < 0:
@@ -81,6 +81,7 @@ def run_batch(args: argparse.Namespace) -> int:
         recording_resolver(args.config),
         base_overrides=args.set,
         map_mode=args.map,
+        software=software_id(),
     )
     for line in recorded_note([log.recorded for log in logs], "batch"):
         print(line, file=sys.stderr)

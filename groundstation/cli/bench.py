@@ -448,7 +448,7 @@ def run_sessions(args: argparse.Namespace) -> int:
     from groundstation.pipeline.batch import Variant, plan_batch
     from groundstation.pipeline.batch_outputs import write_summary
     from groundstation.pipeline.pooling import summarize, summary_markdown
-    from groundstation.runtime.batch import Cluster, execute, log_input, run_all
+    from groundstation.runtime.batch import Cluster, execute, log_input, run_all, software_id
     from groundstation.runtime.configuration import recorded_note, recording_resolver
 
     variants = [Variant.parse(v) for v in args.variant]
@@ -499,7 +499,7 @@ def run_sessions(args: argparse.Namespace) -> int:
                     )  # fmt: skip
         plan = plan_batch(
             logs, variants, recording_resolver(args.config),
-            base_overrides=args.set, map_mode=args.map,
+            base_overrides=args.set, map_mode=args.map, software=software_id(),
         )  # fmt: skip
         on_top = "--config/--set on top"
         if not args.logs:

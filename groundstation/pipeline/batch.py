@@ -10,11 +10,14 @@ outputs of ``groundstation replay --out`` per pair. The batch is split by what e
 
 Task keys
 ---------
-A task is identified by the log's content (sha256 of its bytes) and the *resolved* settings:
-:func:`config_hash` hashes ``groundstation config show``'s TOML of the effective
-:class:`~groundstation.config.Config` plus the replay mode (``--map``, checkpoints). Two variants
-that resolve to the same settings are one task; a renamed or copied log is the same task; a
-changed default changes the key. The task folder :attr:`Task.folder` carries both hashes.
+A task is identified by the log's content (sha256 of its bytes), the *resolved* settings and
+the software that runs it: :func:`config_hash` hashes ``groundstation config show``'s TOML of
+the effective :class:`~groundstation.config.Config`, the replay mode (``--map``, checkpoints)
+and the software's identity (``runtime.batch.software_id``: its version and a digest of its
+own files). Two variants that resolve to the same settings are one task; a renamed or copied
+log is the same task; a changed default, or any change to the code, changes the key, so a
+batch rerun after an upgrade replays again beside the old results instead of taking them for
+its own. The task folder :attr:`Task.folder` carries both hashes.
 """
 
 from __future__ import annotations
@@ -111,6 +114,7 @@ class Task:
     config_hash: str
     map_mode: str = "live"
     checkpoints: int | None = None
+    software: str = ""
 
     @property
     def key(self) -> str:
@@ -149,16 +153,25 @@ class Plan:
         return tuple(seen.values())
 
 
-def replay_settings_text(config: Config, map_mode: str, checkpoints: int | None) -> str:
-    """The resolved settings of a task as TOML: the config and the replay mode (checkpoints
-    ``"growth"``: ``replay --map final`` without ``--checkpoints``)."""
+def replay_settings_text(
+    config: Config, map_mode: str, checkpoints: int | None, software: str = ""
+) -> str:
+    """The resolved settings of a task as TOML: the config, the replay mode (checkpoints
+    ``"growth"``: ``replay --map final`` without ``--checkpoints``) and the software that
+    replays it (when given)."""
     cp = "'growth'" if checkpoints is None else str(int(checkpoints))
-    return to_toml(config) + f"\n[replay]\nmap = {map_mode!r}\ncheckpoints = {cp}\n"
+    text = to_toml(config) + f"\n[replay]\nmap = {map_mode!r}\ncheckpoints = {cp}\n"
+    if software:
+        text += f"\n[software]\ngroundstation = {software!r}\n"
+    return text
 
 
-def config_hash(config: Config, map_mode: str = "live", checkpoints: int | None = None) -> str:
+def config_hash(
+    config: Config, map_mode: str = "live", checkpoints: int | None = None, software: str = ""
+) -> str:
     """sha256 (hex) of :func:`replay_settings_text`."""
-    return hashlib.sha256(replay_settings_text(config, map_mode, checkpoints).encode()).hexdigest()
+    text = replay_settings_text(config, map_mode, checkpoints, software)
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def plan_batch(
@@ -169,6 +182,7 @@ def plan_batch(
     base_overrides: Sequence[str] = (),
     map_mode: str = "live",
     checkpoints: int | None = None,
+    software: str = "",
 ) -> Plan:
     """Every (variant, log) cell with its task.
 
@@ -184,6 +198,9 @@ def plan_batch(
         setting, before any work.
     base_overrides : sequence of str
         ``--set`` items of the batch; a log's own overrides come first, the variant's last.
+    software : str
+        The identity of the software that will run the tasks (``runtime.batch.software_id``),
+        part of every task's key.
     """
     if map_mode not in MAP_MODES:
         raise ConfigError(f"--map {map_mode!r}: use live or final")
@@ -203,8 +220,8 @@ def plan_batch(
             key = (log.recorded, (*log.overrides, *base_overrides, *v.overrides))
             if key not in cache:
                 cfg = resolve(log.recorded, list(key[1]))
-                cache[key] = (cfg, config_hash(cfg, map_mode, checkpoints))
+                cache[key] = (cfg, config_hash(cfg, map_mode, checkpoints, software))
             cfg, h = cache[key]
-            task = Task(log.path, log.sha256, cfg, h, map_mode, checkpoints)
+            task = Task(log.path, log.sha256, cfg, h, map_mode, checkpoints, software)
             cells.append(Cell(v.name, log, task))
     return Plan(tuple(cells), variants, tuple(base_overrides))

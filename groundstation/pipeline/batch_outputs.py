@@ -94,7 +94,7 @@ def run_task(task: Task, out_root: str, snapshots: int = 3) -> dict[str, Any]:
     staging = out / f".{task.folder}.partial-{uuid.uuid4().hex[:8]}"
     try:
         staging.mkdir(parents=True)
-        settings = replay_settings_text(task.config, task.map_mode, task.checkpoints)
+        settings = replay_settings_text(task.config, task.map_mode, task.checkpoints, task.software)
         (staging / "settings.toml").write_text(settings)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", ConvergenceWarning)

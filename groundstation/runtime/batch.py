@@ -24,7 +24,9 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
+import functools
 import hashlib
+import importlib.metadata
 import os
 import shutil
 import sys
@@ -49,6 +51,35 @@ def file_sha256(path: str | Path) -> str:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def tree_digest(root: str | Path) -> str:
+    """Hex sha256 of every file under ``root``: each one's relative path and bytes, in path
+    order (``__pycache__`` folders left out: they follow the sources)."""
+    root = Path(root)
+    h = hashlib.sha256()
+    files = sorted(
+        (p.relative_to(root).as_posix(), p)
+        for p in root.rglob("*")
+        if p.is_file() and "__pycache__" not in p.relative_to(root).parts
+    )
+    for rel, p in files:
+        h.update(rel.encode() + b"\0")
+        h.update(p.read_bytes())
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+@functools.cache
+def software_id() -> str:
+    """This install's identity, ``<version>+<digest[:12]>``: the package version and the
+    :func:`tree_digest` of the package's folder. A batch task's key includes it, so results of
+    other code are never taken for this code's."""
+    try:
+        version = importlib.metadata.version("groundstation")
+    except importlib.metadata.PackageNotFoundError:
+        version = "unknown"
+    return f"{version}+{tree_digest(Path(__file__).resolve().parents[1])[:12]}"
 
 
 def log_input(path: str | Path, overrides: Sequence[str] = (), **labels: str) -> LogInput:

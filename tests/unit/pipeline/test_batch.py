@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 import math
+import tomllib
 
 import pytest
 
 from groundstation.config import load_config
 from groundstation.errors import ConfigError
-from groundstation.pipeline.batch import LogInput, Variant, config_hash, plan_batch
+from groundstation.pipeline.batch import (
+    LogInput,
+    Variant,
+    config_hash,
+    plan_batch,
+    replay_settings_text,
+)
 from groundstation.pipeline.pooling import (
     TRUTH_METRICS,
     log_names,
@@ -54,6 +61,22 @@ def test_config_hash_follows_the_resolved_settings_not_their_spelling():
     assert config_hash(settings([]), "final", 2) != config_hash(settings([]), "final")
     assert config_hash(settings([]), "final", 0) != config_hash(settings([]), "final")  # growth
     assert len(base) == 64 and int(base, 16) >= 0
+    # other code is another task: its results are not this code's
+    assert config_hash(settings([]), software="0.1.0+0123456789ab") != base
+    assert config_hash(settings([]), software="0.1.0+0123456789ab") != config_hash(
+        settings([]), software="0.1.0+ba9876543210"
+    )
+
+
+def test_a_task_is_keyed_and_filed_by_the_software_that_runs_it():
+    old = plan_batch([A], [Variant("base")], resolve, software="0.1.0+0123456789ab").tasks[0]
+    new = plan_batch([A], [Variant("base")], resolve, software="0.1.0+ba9876543210").tasks[0]
+    assert old.config == new.config
+    assert old.key != new.key and old.folder != new.folder  # side by side, neither reused
+    assert new.software == "0.1.0+ba9876543210"
+    text = replay_settings_text(new.config, new.map_mode, new.checkpoints, new.software)
+    assert text.endswith("\n[software]\ngroundstation = '0.1.0+ba9876543210'\n")
+    assert tomllib.loads(text)["software"] == {"groundstation": "0.1.0+ba9876543210"}
 
 
 def test_plan_makes_one_task_per_distinct_log_and_settings():
