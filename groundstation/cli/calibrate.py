@@ -280,16 +280,9 @@ def run_detector_calibrate(args: argparse.Namespace) -> int:
     from groundstation.acquisition.replay import iter_replay
     from groundstation.contact.calibration import calibrate
     from groundstation.errors import InputDataError
-    from groundstation.runtime.configuration import (
-        recorded_text,
-        resolve_for_recording,
-        settings_note,
-    )
+    from groundstation.runtime.configuration import resolve_for_log
 
-    resolved = resolve_for_recording(recorded_text(args.log), args.config, args.set)
-    for line in settings_note(resolved, bool(args.config or args.set)):
-        print(f"calibrate: {line}", file=sys.stderr)
-    cfg = resolved.config
+    cfg = resolve_for_log(args.log, args.config, args.set, "calibrate").config
     out = Path(args.out) if args.out else None
     if out is not None and out.exists() and not args.force:
         raise InputDataError(f"{out} exists", hint="pass --force to replace it")

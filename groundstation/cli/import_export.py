@@ -14,7 +14,6 @@ output file behind (``importers.atomic_output``) and prints ``error:``/``hint:``
 from __future__ import annotations
 
 import argparse
-import sys
 
 
 def _out_arguments(parser: argparse.ArgumentParser, help_text: str) -> None:
@@ -174,16 +173,9 @@ def run_export_foxglove(args: argparse.Namespace) -> int:
     """Copy a recording and add the Foxglove channels (groundstation.openformats.export)."""
     from groundstation.openformats.export import export_foxglove
     from groundstation.openformats.foxglove import FoxgloveTranslator
-    from groundstation.runtime.configuration import (
-        recorded_text,
-        resolve_for_recording,
-        settings_note,
-    )
+    from groundstation.runtime.configuration import resolve_for_log
 
-    resolved = resolve_for_recording(recorded_text(args.src), args.config, args.set)
-    for line in settings_note(resolved, bool(args.config or args.set)):
-        print(f"export: {line}", file=sys.stderr)
-    cfg = resolved.config
+    cfg = resolve_for_log(args.src, args.config, args.set, "export").config
     summary = export_foxglove(
         args.src,
         args.out,

@@ -204,17 +204,9 @@ def _progress_offline(quiet: bool):
 
 def _resolve(log: Path, args: argparse.Namespace):
     """The recorded configuration as the base, ``--config``/``--set`` on top (said on stderr)."""
-    from groundstation.runtime.configuration import (
-        recorded_text,
-        resolve_for_recording,
-        settings_note,
-    )
+    from groundstation.runtime.configuration import resolve_for_log
 
-    resolved = resolve_for_recording(recorded_text(log), args.config, args.set)
-    if not args.quiet:
-        for line in settings_note(resolved, bool(args.config or args.set)):
-            print(f"replay: {line}", file=sys.stderr, flush=True)
-    return resolved
+    return resolve_for_log(log, args.config, args.set, "replay", quiet=args.quiet)
 
 
 def _check_log(log: Path, start: float | None, end: float | None) -> tuple[int, float]:

@@ -18,6 +18,7 @@ fatal.
 from __future__ import annotations
 
 import dataclasses
+import sys
 import tomllib
 import typing
 from collections.abc import Callable, Mapping, Sequence
@@ -189,6 +190,23 @@ def settings_note(resolved: Resolved, on_top: bool) -> list[str]:
             "recorded settings this version does not use, skipped: " + ", ".join(resolved.skipped)
         )
     return lines
+
+
+def resolve_for_log(
+    log: str | Path,
+    config_path: str | Path | None,
+    overrides: Sequence[str],
+    command: str,
+    quiet: bool = False,
+) -> Resolved:
+    """What a command replaying one recording runs with: the configuration recorded in
+    ``log`` as the base, ``config_path`` and ``overrides`` on top; :func:`settings_note` on
+    stderr as ``<command>: ...`` unless ``quiet``."""
+    resolved = resolve_for_recording(recorded_text(log), config_path, overrides)
+    if not quiet:
+        for line in settings_note(resolved, bool(config_path or overrides)):
+            print(f"{command}: {line}", file=sys.stderr, flush=True)
+    return resolved
 
 
 def recording_resolver(config_path: str | Path | None) -> Callable[[str, Sequence[str]], Config]:
