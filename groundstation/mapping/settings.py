@@ -179,7 +179,7 @@ class MappingSettings:
         them, and plane points there only draw brims past edges: on the paper-like set
         (900 dense contacts) planes at every contact cost 6 mm of Chamfer, planes at lone ones
         none. A plane point past another touch's face or round a bend two touches show is
-        left out (``training._plane_points``). The rows belong to the touch's event, so its
+        left out (``training._plane_keep``). The rows belong to the touch's event, so its
         fate is theirs and free space through them is evidence against it. Tuning flights
         (seed 200, 27 flights, flight means; gusts and touches pooled), 0 with mask 0.7 ->
         0.2 with mask 0.6 (``surface.max_std_fraction``): missing within 0.5 m 0.302 ->

@@ -36,7 +36,7 @@
   gets them: the surface is carried on from touches the detector believes, not from a
   coin-flip event amid free space. A plane point that another touch nearby places outside its
   own surface (past an edge whose other face was touched), or that lies round a bend two
-  touches show (a pillar touched at two sides), is left out (``_plane_points``).
+  touches show (a pillar touched at two sides), is left out (``_plane_keep``).
 - **Groups.** The rows of one contact event form a group (contacts without an event id are
   grouped into runs no more than ``event_gap_s`` apart in time). Its prior ``P(false)`` is the
   detector's ``p_false`` (mean over its rows) where known, else ``prior_false``.
@@ -79,7 +79,7 @@
   vehicle resting on a deck top is as near the deck as a body can be. (With the guarded body
   assumed 0.1 m thick and 0.255 m wide, a MuJoCo vehicle resting on a pier deck refuted top
   touches placed 1-4 cm high.) A rim point that a touch of another event places outside its
-  own surface (the ``_plane_points`` guard: the other face of an edge) is no probe, where the
+  own surface (the ``_plane_keep`` guard: the other face of an edge) is no probe, where the
   detector vouches
   for that touch (prior ``P(false)`` at most ``plane_max_p_false``; gusts guarding each other
   would clear a cluster) and the two are faces of one solid (each on or behind the other's
@@ -99,7 +99,7 @@ from groundstation.contact.detector import Observation
 from groundstation.mapping.mixture import Groups
 
 #: A plane point another touch within this many plane reaches of it places outside that
-#: touch's surface is dropped (``_plane_points``) ...
+#: touch's surface is dropped (``_plane_keep``) ...
 PLANE_GUARD_REACHES = 2.5
 #: ... by more than this along the other touch's normal, metres (the detector's placement
 #: error is a few centimetres).
@@ -393,6 +393,8 @@ def build_training_set(
     if p.tangent_slope_noise > 0 and d == 3:
         lone = _lone(contacts, cen, p.plane_reach_m)
         none = np.zeros(0, dtype=np.int64)
+        rho = p.plane_reach_m
+        todo = []  # (group, its two tangents, whether it carries plane points)
         for g in range(G):
             n = nrm[g]  # zero without contacts or where their normals disagree
             if not n.any():
@@ -400,19 +402,27 @@ def build_training_set(
             a = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
             a /= np.linalg.norm(a)
             b = np.cross(n, a)
-            centre = cen[g]
             if is_settled[g]:  # settled: one event's tangents per voxel (rows bounded by area)
-                key = tuple(np.floor(centre / p.settled_voxel_m).astype(np.int64).tolist())
+                key = tuple(np.floor(cen[g] / p.settled_voxel_m).astype(np.int64).tolist())
                 if key in tangent_cells:
                     continue
                 tangent_cells.add(key)
+            todo.append((g, a, b, rho > 0 and lone[g] and prior[g] <= p.plane_max_p_false))
+        planar = [(g, np.array([a, -a, b, -b])) for g, a, b, on in todo if on]
+        keep = _plane_keep(
+            np.array([g for g, _ in planar], dtype=np.int64),
+            np.array([t for _, t in planar]).reshape(-1, 4, 3),
+            cen, nrm, rho,
+        )  # fmt: skip
+        kept = dict(zip([g for g, _ in planar], keep, strict=True))
+        for g, a, b, on in todo:
+            centre = cen[g]
             owner = -1 if is_settled[g] else g
             extra = [centre, centre]
             dirs.append(np.array([a, b]))
             s2_extra = [p.tangent_slope_noise**2] * 2
-            if p.plane_reach_m > 0 and lone[g] and prior[g] <= p.plane_max_p_false:
-                rho = p.plane_reach_m
-                qs = _plane_points(g, centre, (a, -a, b, -b), cen, nrm, rho)
+            if on:
+                qs = [centre + rho * t for t, k in zip((a, -a, b, -b), kept[g], strict=True) if k]
                 extra += qs
                 dirs.append(np.zeros((len(qs), 3)))
                 s2_extra += [p.contact_noise**2 + (p.plane_noise_per_m * rho) ** 2] * len(qs)
@@ -489,12 +499,13 @@ def _centres_normals(
     return cen, nrm
 
 
-def _plane_points(
-    g: int, centre: np.ndarray, tangents: Sequence[np.ndarray], cen: np.ndarray,
-    nrm: np.ndarray, reach: float,
-) -> list[np.ndarray]:  # fmt: skip
-    """Group ``g``'s plane points ``centre + reach * t``, leaving out the ones the touches
-    within ``PLANE_GUARD_REACHES * reach`` say the surface does not go on flat to:
+def _plane_keep(
+    groups: np.ndarray, tangents: np.ndarray, cen: np.ndarray, nrm: np.ndarray, reach: float
+) -> np.ndarray:
+    """(m, k) bool: which plane points ``cen[groups[i]] + reach * tangents[i, j]`` are kept,
+    for every group at once (the touches within ``PLANE_GUARD_REACHES * reach`` of each point
+    found in one k-d tree query). A plane point is left out where the touches near it say the
+    surface does not go on flat to it:
 
     - *past an edge*: another touch places the point outside its own surface (by more than
       ``PLANE_BEYOND_TOL_M`` along its normal), the other face of a corner was touched;
@@ -505,32 +516,42 @@ def _plane_points(
       A box touched on two faces equally far from their edge looks the same; there the
       plane is left out too, and the GP's own smooth interpolation decides.
     """
-    n_g = nrm[g]
-    others = (np.arange(len(cen)) != g) & np.isfinite(cen).all(axis=1) & nrm.any(axis=1)
-    out = []
-    for t in tangents:
-        q = centre + reach * t
-        near = others & (np.linalg.norm(np.nan_to_num(cen - q, nan=np.inf), axis=1)
-                         <= PLANE_GUARD_REACHES * reach)  # fmt: skip
-        off = cen[near] - centre
-        past_edge = np.einsum("ij,ij->i", q - cen[near], nrm[near]) > PLANE_BEYOND_TOL_M
-        behind = -(off @ n_g)  # h: how far behind the tangent plane
-        cos = np.clip(nrm[near] @ n_g, -1.0, 1.0)
-        turn = nrm[near] - np.outer(cos, n_g)  # the way the normal turns, in the plane
-        turn /= np.maximum(np.linalg.norm(turn, axis=1, keepdims=True), 1e-12)
-        ahead = np.einsum("ij,ij->i", off, turn)  # s: how far ahead that way
-        # on a circle through both touches h / s = tan(theta / 2), theta the normals' turn
-        half = np.tan(np.arccos(cos) / 2)
-        bend = (
-            (off @ t > 0)
-            & (behind > PLANE_BEYOND_TOL_M)
-            & (nrm[near] @ t > PLANE_TURN_SIN)
-            & (behind < PLANE_BEND_RATIO * half * ahead)
-            & (behind * PLANE_BEND_RATIO > half * ahead)
-        )
-        if not np.any(past_edge | bend):
-            out.append(q)
-    return out
+    m, k = tangents.shape[:2]
+    keep = np.ones((m, k), dtype=bool)
+    valid = np.flatnonzero(np.isfinite(cen).all(axis=1) & nrm.any(axis=1))
+    if m == 0 or valid.size == 0:
+        return keep
+    from scipy.spatial import cKDTree
+
+    centre = cen[groups]  # (m, 3)
+    Q = (centre[:, None, :] + reach * tangents).reshape(-1, 3)  # (m k, 3)
+    near = cKDTree(cen[valid]).query_ball_point(Q, PLANE_GUARD_REACHES * reach)
+    counts = np.fromiter((len(x) for x in near), dtype=np.int64, count=len(near))
+    qi = np.repeat(np.arange(Q.shape[0]), counts)
+    j = valid[np.fromiter((v for x in near for v in x), dtype=np.int64, count=int(counts.sum()))]
+    gi = qi // k
+    mine = j != groups[gi]
+    qi, j, gi = qi[mine], j[mine], gi[mine]
+    t = tangents.reshape(-1, 3)[qi]
+    n_g = nrm[groups[gi]]
+    n_j = nrm[j]
+    off = cen[j] - centre[gi]
+    past_edge = np.einsum("ij,ij->i", Q[qi] - cen[j], n_j) > PLANE_BEYOND_TOL_M
+    behind = -np.einsum("ij,ij->i", off, n_g)
+    cos = np.clip(np.einsum("ij,ij->i", n_j, n_g), -1.0, 1.0)
+    turn = n_j - cos[:, None] * n_g
+    turn /= np.maximum(np.linalg.norm(turn, axis=1, keepdims=True), 1e-12)
+    ahead = np.einsum("ij,ij->i", off, turn)
+    half = np.tan(np.arccos(cos) / 2)
+    bend = (
+        (np.einsum("ij,ij->i", off, t) > 0)
+        & (behind > PLANE_BEYOND_TOL_M)
+        & (np.einsum("ij,ij->i", n_j, t) > PLANE_TURN_SIN)
+        & (behind < PLANE_BEND_RATIO * half * ahead)
+        & (behind * PLANE_BEND_RATIO > half * ahead)
+    )
+    bad = np.bincount(qi[past_edge | bend], minlength=Q.shape[0]) > 0
+    return keep & ~bad.reshape(m, k)
 
 
 def _lone(contacts: list[np.ndarray], centres: np.ndarray, radius: float) -> np.ndarray:
@@ -661,7 +682,7 @@ def _past_edge(
     """(k,) bool: probe ``pts[k]`` of group ``owner[k]`` lies past an edge: a ``guard`` group
     other than its own, with a contact plane and its centroid within ``PLANE_GUARD_REACHES *
     reach`` of the probe, places it outside its surface (by more than ``PLANE_BEYOND_TOL_M``
-    along its normal), as ``_plane_points`` does, where the two touches are faces of one solid
+    along its normal), as ``_plane_keep`` does, where the two touches are faces of one solid
     (each lies on or behind the other's tangent plane). The deck's end face touched near its lower
     edge has half its disc below the deck, where the vehicle flies later; the underside's
     touches say that the end face stops there."""

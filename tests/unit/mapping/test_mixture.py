@@ -13,7 +13,7 @@ from groundstation.contact.detector import Observation
 from groundstation.errors import InputDataError
 from groundstation.mapping.kernels import se_kernel, se_mixed
 from groundstation.mapping.mixture import EventMixtureGPIS, Groups, KernelBounds
-from groundstation.mapping.training import TrainingPolicy, build_training_set
+from groundstation.mapping.training import TrainingPolicy, _plane_keep, build_training_set
 
 BOUNDS = KernelBounds((0.1, 0.5), (0.05, 1.0))
 
@@ -539,6 +539,35 @@ def test_settled_events_are_pooled_with_their_summed_precision():
             np.concatenate([plain.row_members[k] for k in np.flatnonzero(old)]).tolist()
         )
     assert [g.tolist() for g in ts.group_ids] == [g.tolist() for g in plain.group_ids]
+
+
+def test_plane_points_of_many_touches_are_judged_as_each_alone():
+    """``_plane_keep`` judges every group's plane points at once; each group's answer is the
+    one it gets alone (random touches on the faces of a box and a pillar, some normals
+    unknown, some centroids missing)."""
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        G = int(rng.integers(2, 40))
+        cen = rng.uniform(0.0, 0.8, (G, 3))
+        nrm = np.eye(3)[rng.integers(0, 3, G)] * rng.choice([-1.0, 1.0], (G, 1))
+        tilted = rng.random(G) < 0.4
+        nrm[tilted] = rng.normal(size=(int(tilted.sum()), 3))
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        nrm[rng.random(G) < 0.1] = 0.0
+        cen[rng.random(G) < 0.05] = np.nan
+        groups = np.flatnonzero(nrm.any(axis=1) & np.isfinite(cen).all(axis=1))
+        a = np.cross(nrm[groups], [0.0, 0.0, 1.0])
+        a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
+        b = np.cross(nrm[groups], a)
+        tangents = np.stack([a, -a, b, -b], axis=1)
+        reach = float(rng.choice([0.1, 0.2]))
+        together = _plane_keep(groups, tangents, cen, nrm, reach)
+        assert together.shape == (groups.size, 4)
+        for i, g in enumerate(groups):
+            alone = _plane_keep(groups[i : i + 1], tangents[i : i + 1], cen, nrm, reach)
+            assert np.array_equal(alone[0], together[i]), g
+    none = _plane_keep(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 3)), cen, nrm, 0.2)
+    assert none.shape == (0, 4)
 
 
 def test_an_event_no_other_events_contact_comes_near_is_uncorroborated():
