@@ -535,13 +535,14 @@ def _plane_keep(
     t = tangents.reshape(-1, 3)[qi]
     n_g = nrm[groups[gi]]
     n_j = nrm[j]
-    off = cen[j] - centre[gi]
+    off = cen[j] - centre[gi]  # from the touch to its neighbour
     past_edge = np.einsum("ij,ij->i", Q[qi] - cen[j], n_j) > PLANE_BEYOND_TOL_M
-    behind = -np.einsum("ij,ij->i", off, n_g)
+    behind = -np.einsum("ij,ij->i", off, n_g)  # h: how far behind the tangent plane
     cos = np.clip(np.einsum("ij,ij->i", n_j, n_g), -1.0, 1.0)
-    turn = n_j - cos[:, None] * n_g
+    turn = n_j - cos[:, None] * n_g  # the way the normal turns, in the plane
     turn /= np.maximum(np.linalg.norm(turn, axis=1, keepdims=True), 1e-12)
-    ahead = np.einsum("ij,ij->i", off, turn)
+    ahead = np.einsum("ij,ij->i", off, turn)  # s: how far ahead that way
+    # on a circle through both touches h / s = tan(theta / 2), theta the normals' turn
     half = np.tan(np.arccos(cos) / 2)
     bend = (
         (np.einsum("ij,ij->i", off, t) > 0)
