@@ -29,3 +29,23 @@ def external_data() -> Path:
             "px4_ulog/)"
         )
     return EXTERNAL_DATA
+
+
+@pytest.fixture(scope="session")
+def bundled_replay():
+    """``get(name)``: the in-process replay of ``replay_logs/<name>.mcap`` with the default
+    settings (live refit cadence), run once per session. It is deterministic, and the pipeline
+    and ``--map final`` tests both compare against it (each bundled log took 5-20 s per run).
+    Callers must not modify the result."""
+    from groundstation.config import load_config
+    from groundstation.pipeline.offline import run_offline
+
+    runs: dict = {}
+
+    def get(name: str):
+        if name not in runs:
+            log = PROJECT_ROOT / "replay_logs" / f"{name}.mcap"
+            runs[name] = run_offline(str(log), load_config())
+        return runs[name]
+
+    return get

@@ -30,9 +30,9 @@ pytestmark = pytest.mark.timeout(600)
 
 
 @pytest.mark.parametrize("name", NAMES)
-def test_the_final_map_is_at_least_as_accurate_as_the_live_cadence(name):
+def test_the_final_map_is_at_least_as_accurate_as_the_live_cadence(name, bundled_replay):
     log = str(ROOT / "replay_logs" / f"{name}.mcap")
-    live = run_offline(log, load_config())
+    live = bundled_replay(name)
     final = run_offline(log, load_config(), map_mode="final")
     a, b = build_report(final), build_report(live)
     assert 1 < len(final.fits) < len(live.fits)

@@ -54,12 +54,12 @@ pytestmark = pytest.mark.timeout(900)
 
 
 @pytest.fixture(scope="module")
-def runs() -> dict:
+def runs(bundled_replay) -> dict:
     """name -> (in-process result, multi-process result); each pipeline runs once per log."""
     out = {}
     for name in NAMES:
         log = str(ROOT / "replay_logs" / f"{name}.mcap")
-        offline = run_offline(log, load_config())
+        offline = bundled_replay(name)
         multi = run_multiprocess(log, timeout_s=600)
         out[name] = (offline, multi)
     return out
