@@ -157,6 +157,8 @@ class SurfaceModel:
         the costs of the two errors differ: a false one trusted draws a whole phantom patch
         with no surface near to bound it, a true one dropped loses one touch until the next
         touch beside it corroborates it (and both are then decided on the ``decide_p`` line).
+        Only an event not believed false (P(false) at most ``decide_p`` at the last fit, its
+        prior when new) corroborates another.
 
     Attributes (after ``fit``)
     --------------------------
@@ -214,7 +216,8 @@ class SurfaceModel:
         if refuted:
             self._settled.difference_update(refuted)
             ts = build_training_set(observations, self.policy, frozenset(self._settled))
-        line = np.where(ts.lone, self.lone_decide_p, self.decide_p)
+        vouch = self.warm_start(ts) <= self.decide_p  # not believed false: may corroborate
+        line = np.where(ts.uncorroborated(vouch), self.lone_decide_p, self.decide_p)
         return dataclasses.replace(ts, groups=dataclasses.replace(ts.groups, decide_p=line))
 
     def learn_kernel_now(self, ts: TrainingSet) -> bool:

@@ -189,9 +189,10 @@ class TrainingSet:
         The group was settled: its rows are in the trusted pool (row group -1).
     n_raw : int
         Observations given.
-    lone : (G,) bool
-        *Uncorroborated*: the group has contacts and no other group's contact lies within
-        ``lone_reach_m`` of their centroid (all False with ``lone_reach_m`` 0).
+    corroborators : tuple of (k,) int64 arrays or None
+        For each group with contacts, the other groups with a contact within ``lone_reach_m``
+        of its contact centroid: those that may corroborate it (None: a group without
+        contacts, or every group with ``lone_reach_m`` 0). :meth:`uncorroborated` reads it.
     """
 
     X: np.ndarray
@@ -208,10 +209,21 @@ class TrainingSet:
     t_end_ns: np.ndarray
     settled: np.ndarray
     n_raw: int
-    lone: np.ndarray
+    corroborators: tuple[np.ndarray | None, ...]
 
     def __len__(self) -> int:
         return int(self.X.shape[0])
+
+    def uncorroborated(self, vouch: np.ndarray | None = None) -> np.ndarray:
+        """(G,) bool: the group has contacts and none of its corroborators vouches for it
+        (``vouch[h]``: group ``h`` may corroborate another; default every group).
+
+        An event the map believes false corroborates nothing: two gusts of one cluster pushed
+        the drone to the same place, and a doubted one beside a flagged one was kept because
+        of it (tuning flights: the unflagged gust under four of the ten largest phantom
+        patches had only flagged gusts within 0.5 m)."""
+        ok = np.ones(len(self.corroborators), dtype=bool) if vouch is None else vouch
+        return np.array([c is not None and not ok[c].any() for c in self.corroborators], dtype=bool)
 
 
 def group_key(event_id: int, ids: Sequence[int]) -> tuple:
@@ -475,9 +487,7 @@ def build_training_set(
         t_end_ns=t_hi,
         settled=is_settled,
         n_raw=len(obs),
-        lone=_lone(contacts, cen, p.lone_reach_m) & np.isfinite(cen).all(axis=1)
-        if p.lone_reach_m > 0
-        else np.zeros(G, dtype=bool),
+        corroborators=_corroborators(contacts, cen, p.lone_reach_m),
     )
 
 
@@ -553,6 +563,29 @@ def _plane_keep(
     )
     bad = np.bincount(qi[past_edge | bend], minlength=Q.shape[0]) > 0
     return keep & ~bad.reshape(m, k)
+
+
+def _corroborators(
+    contacts: list[np.ndarray], centres: np.ndarray, radius: float
+) -> tuple[np.ndarray | None, ...]:
+    """For each group with contacts and a finite centroid ``centres[g]``, the other groups
+    with a contact within ``radius`` of it, sorted (None for the others, and for every group
+    with ``radius`` <= 0)."""
+    out: list[np.ndarray | None] = [None] * len(contacts)
+    sizes = [len(cs) for cs in contacts]
+    if radius <= 0 or not sum(sizes):
+        return tuple(out)
+    from scipy.spatial import cKDTree
+
+    owner = np.repeat(np.arange(len(contacts)), sizes)
+    has = [g for g in np.flatnonzero(sizes) if np.isfinite(centres[g]).all()]
+    if not has:
+        return tuple(out)
+    nears = cKDTree(np.concatenate(contacts)).query_ball_point(centres[has], radius)
+    for g, near in zip(has, nears, strict=True):
+        who = np.unique(owner[np.asarray(near, dtype=np.int64)])
+        out[g] = who[who != g]
+    return tuple(out)
 
 
 def _lone(contacts: list[np.ndarray], centres: np.ndarray, radius: float) -> np.ndarray:

@@ -278,3 +278,27 @@ def test_an_uncorroborated_doubted_touch_is_decided_on_the_lone_line_until_corro
     fit = m.refit()
     assert 77 not in fit.flagged_events and 78 not in fit.flagged_events
     assert np.linalg.norm(fit.mesh.vertices - lone, axis=1).min() < 0.15
+
+
+def test_an_event_the_map_believes_false_corroborates_nothing():
+    """A gust the detector is sure of (0.95), 0.3 m from the doubted lone touch, is flagged;
+    it does not corroborate the touch, which stays on the lone line (flagged, not drawn). Two
+    gusts of one cluster push the drone to the same place: one flagged must not keep the
+    other on the line for corroborated events."""
+    o, lone = _sphere_and_a_doubted_lone_touch()
+    up = np.array([0.0, 0.0, 1.0])
+    i = max(o_.id for o_ in o) + 1
+    c = lone + [0.3, 0.0, 0.0]
+    o += [
+        Observation(i, int(12 * S), c, 0.0, up, 79, 2.0, p_false=0.95),
+        Observation(i + 1, int(12 * S), c - 0.1 * up, -1.0, up, 79, 2.0, p_false=0.95),
+    ]  # fmt: skip
+    m = Mapper(MapperSettings())
+    m.add(o)
+    fit = m.refit()
+    assert fit.flagged_events == (77, 79)
+    assert np.linalg.norm(fit.mesh.vertices - lone, axis=1).min() > 1.0
+    # with every event vouching (the lone line as loose as flag_p), both lines are one
+    m = Mapper(MapperSettings(lone_flag_p=0.5))
+    m.add(o)
+    assert m.refit().flagged_events == (79,)

@@ -571,8 +571,9 @@ def test_plane_points_of_many_touches_are_judged_as_each_alone():
 
 
 def test_an_event_no_other_events_contact_comes_near_is_uncorroborated():
-    """``lone``: no other event's contact within ``lone_reach_m`` of the event's own centroid;
-    a flagged or a settled neighbour corroborates as much as any (the flag is decided on it)."""
+    """Uncorroborated: no other event's contact within ``lone_reach_m`` of the event's own
+    centroid, counting only the events that vouch (a settled neighbour corroborates as any;
+    one the map believes false does not)."""
     n = np.array([-1.0, 0.0, 0.0])
 
     def touch(i, t, y):
@@ -584,12 +585,19 @@ def test_an_event_no_other_events_contact_comes_near_is_uncorroborated():
 
     obs = touch(0, 0.0, 0.0) + touch(1, 5.0, 0.4) + touch(2, 10.0, 2.0)
     ts = build_training_set(obs, TrainingPolicy(lone_reach_m=0.5))
-    assert ts.lone.tolist() == [False, False, True]
-    assert build_training_set(obs, TrainingPolicy(lone_reach_m=0.3)).lone.tolist() == [True] * 3
+    assert ts.uncorroborated().tolist() == [False, False, True]
+    assert [c.tolist() for c in ts.corroborators] == [[1], [0], []]
+    # the first believed false: the second has no one left to vouch for it
+    assert ts.uncorroborated(np.array([False, True, True])).tolist() == [False, True, True]
+    assert ts.uncorroborated(np.zeros(3, dtype=bool)).tolist() == [True] * 3
+    near = build_training_set(obs, TrainingPolicy(lone_reach_m=0.3))
+    assert near.uncorroborated().tolist() == [True] * 3
     settled = frozenset({ts.keys[0]})
-    assert build_training_set(obs, TrainingPolicy(lone_reach_m=0.5), settled).lone.tolist() == [
-        False, False, True,
-    ]  # fmt: skip
+    assert build_training_set(
+        obs, TrainingPolicy(lone_reach_m=0.5), settled
+    ).uncorroborated().tolist() == [False, False, True]
+    off = build_training_set(obs, TrainingPolicy(lone_reach_m=0.0))
+    assert off.uncorroborated(np.zeros(3, dtype=bool)).tolist() == [False] * 3
 
 
 def test_a_lone_touch_goes_on_as_plane_points_and_a_crowded_one_does_not():
@@ -623,7 +631,7 @@ def test_a_lone_touch_goes_on_as_plane_points_and_a_crowded_one_does_not():
     np.testing.assert_allclose(lone.noise_var[p], policy.contact_noise**2 + (0.5 * 0.2) ** 2)
     crowded = build_training_set(touch(0, 0.0, 0.0, 0) + touch(1, 5.0, 0.15, 1), policy)
     assert planes(crowded).sum() == 0
-    assert not lone.lone.any() and not crowded.lone.any()  # lone_reach_m 0: none uncorroborated
+    assert not lone.uncorroborated().any() and not crowded.uncorroborated().any()  # reach 0: none
     off = build_training_set(touch(0, 0.0, 0.0, 0), dataclasses.replace(policy, plane_reach_m=0.0))
     assert planes(off).sum() == 0
     # a touch the detector doubts (p_false above plane_max_p_false) carries no surface on
