@@ -239,14 +239,17 @@ _TABLE = [
         "reasons": Field("list", optional=True), "data_ns": Field("int", optional=True),
         "lag_s": Field("float", optional=True), "fit_s": Field("float", optional=True),
         "hyperparameters": Field("dict", optional=True),
-        "flagged_events": Field("list", optional=True)},
+        "flagged_events": Field("list", optional=True),
+        "awaiting_events": Field("list", optional=True)},
        {"ids": Array(_INT, ("n",)), "u": Array(_FLOAT, ("n",)), "flags": Array(("|u1",), ("n",))},
        "Per-observation uncertainty u_i = beta~_i/alpha~_i and flag bits after a refit "
-       "(bit 0 = flagged false-positive contact). reliable/reasons: the fit diagnosis "
+       "(bit 0 = flagged false-positive contact; bit 1, with bit 0 = flagged only because no "
+       "other touch corroborates it). reliable/reasons: the fit diagnosis "
        "(mapping.diagnostics; an unreliable fit keeps the last good mesh); data_ns: data time "
        "of the newest observation in the fit; lag_s: data time received minus data_ns when "
        "published; fit_s: wall seconds of the refit; hyperparameters: lengthscale, ...; "
-       "flagged_events: contact event ids flagged as false positives."),
+       "flagged_events: contact event ids flagged as false positives; awaiting_events: those "
+       "of them a second touch beside them would keep (mapper.lone_flag_p)."),
     _t("mesh", "mesh", 1, "mapper", "latest", "state",
        {"fit_index": Field("int")},
        {"vertices": Array(_FLOAT, ("v", 3)), "triangles": Array(_INT, ("t", 3)),

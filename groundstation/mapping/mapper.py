@@ -69,6 +69,7 @@ from groundstation.mapping.settings import MapperSettings, MappingSettings, Surf
 from groundstation.mapping.surface import SurfaceMesh
 
 FLAG_FALSE_POSITIVE = 1  # mapper.fit flag bit 0
+FLAG_AWAITING = 2  # bit 1: flagged only for want of a second touch near it (with bit 0)
 
 
 @dataclasses.dataclass
@@ -84,7 +85,8 @@ class FitResult:
     ids, u : (n,) int64, float64
         Every observation id held and its u_i (members of a merged cell share its u).
     flags : (n,) uint8
-        Flag bits (bit 0: flagged false-positive contact).
+        Flag bits (bit 0: flagged false-positive contact; bit 1, with bit 0: its event is
+        flagged only because nothing corroborates it, see ``awaiting_events``).
     flagged_events : tuple of int
         Contact event ids flagged as false positives.
     mesh : SurfaceMesh or None
@@ -105,6 +107,10 @@ class FitResult:
         free space, NaN unknown; None for the legacy engine).
     notes : tuple of str
         Facts worth showing that do not make the fit unreliable (``region_clipped``).
+    awaiting_events : tuple of int
+        The flagged events the map would keep if a second touch corroborated them (decided
+        false on ``mapper.lone_flag_p`` with a posterior at most ``mapper.flag_p``): where the
+        pilot should touch again.
     """
 
     fit_index: int
@@ -122,6 +128,7 @@ class FitResult:
     fallback: str = "none"
     p_false: np.ndarray | None = None
     notes: tuple[str, ...] = ()
+    awaiting_events: tuple[int, ...] = ()
 
 
 def default_model_factory(mapping: MappingSettings, surface: SurfaceSettings):
@@ -352,6 +359,9 @@ class Mapper:
         f_arr = np.array([f_by.get(i, False) for i in ids.tolist()], dtype=bool)
         flags = np.where(f_arr, FLAG_FALSE_POSITIVE, 0).astype(np.uint8)
         flagged = model.flagged_events()
+        awaiting = model.awaiting_events()
+        event_of = np.array([o.event_id for o in obs], dtype=np.int64)
+        flags[f_arr & np.isin(event_of, awaiting)] |= FLAG_AWAITING
         hyper = {
             "lengthscale": summary.lengthscale,
             "signal_var": summary.signal_var,
@@ -372,7 +382,7 @@ class Mapper:
             return self._unreliable(ids, data_ns, timings, hyper, reasons, "none")
         res = FitResult(
             self.fit_index, data_ns, ids, u_arr, flags, flagged, mesh, self.fit_index,
-            timings, hyper, True, (), "none", p_arr, notes,
+            timings, hyper, True, (), "none", p_arr, notes, awaiting,
         )  # fmt: skip
         self.last_good = res
         return res
@@ -397,6 +407,7 @@ class Mapper:
             self.fit_index, data_ns, ids, u_arr, flags, events,
             None if lg is None else lg.mesh, -1 if lg is None else lg.mesh_fit_index,
             timings, hyper, False, tuple(reasons), fallback, p_arr,
+            awaiting_events=() if lg is None else lg.awaiting_events,
         )  # fmt: skip
 
     def _attempt(self, model, X, y, ids, t_ns, warm: bool):

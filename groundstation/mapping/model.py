@@ -512,6 +512,15 @@ class SurfaceModel:
         ts = self.training_set_
         return tuple(sorted(int(e) for e in ts.event_ids[self.decided_false_] if e >= 0))
 
+    def awaiting_events(self) -> tuple[int, ...]:
+        """Detector events decided false only for want of corroboration, sorted: their
+        posterior is at most ``decide_p`` (an event beside them would keep them) but above
+        the lone line. The pilot can settle them by touching the surface there again."""
+        self._check()
+        ts = self.training_set_
+        only_lone = self.decided_false_ & (self.posterior_false_ <= self.decide_p)
+        return tuple(sorted(int(e) for e in ts.event_ids[only_lone] if e >= 0))
+
     def by_observation(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(ids, u, p_false, false)`` of every observation that is a row or a group member:
         ``u = 1 / w_i`` (the effective noise variance of its row, label units^2; NaN for

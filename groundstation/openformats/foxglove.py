@@ -321,6 +321,9 @@ class FoxgloveTranslator:
         )
         if "fit_s" in p:
             text += f", {float(p['fit_s']):.2f} s"
+        waiting = p.get("awaiting_events") or ()
+        if waiting:
+            text += "; awaiting a second touch: " + ", ".join(str(int(e)) for e in waiting)
         if not reliable:
             text += "; FIT UNRELIABLE: " + "; ".join(str(r) for r in p.get("reasons", ()))
         out = [self._log(2 if reliable else 3, "mapper", text, t, log_t)]

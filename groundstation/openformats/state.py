@@ -16,9 +16,9 @@ import math
 
 import numpy as np
 
-from groundstation.viewer.scene import FLAG_FALSE_POSITIVE, FLAGGED, PENDING, TRUSTED
+from groundstation.viewer.scene import AWAITING, FLAGGED, PENDING, TRUSTED, contact_states
 
-__all__ = ["FLAGGED", "PENDING", "TRUSTED", "ContactBook", "Trajectory"]
+__all__ = ["AWAITING", "FLAGGED", "PENDING", "TRUSTED", "ContactBook", "Trajectory"]
 
 
 class ContactBook:
@@ -109,8 +109,7 @@ class ContactBook:
         if self._fit_ids.size and k:
             pos = np.clip(np.searchsorted(self._fit_ids, ids), 0, self._fit_ids.size - 1)
             found = self._fit_ids[pos] == ids
-            bad = (self._fit_flags[pos] & FLAG_FALSE_POSITIVE) != 0
-            state[found] = np.where(bad[found], FLAGGED, TRUSTED)
+            state[found] = contact_states(self._fit_flags[pos][found])
             u[found] = self._fit_u[pos][found]
         return {"xyz": xyz, "state": state, "p_false": p, "u": u, "event_id": event, "id": ids}
 
@@ -127,7 +126,8 @@ class ContactBook:
         if self._flagged_events is not None:
             return len(self._flagged_events)
         a = self.arrays()
-        return len({int(e) for e, s in zip(a["event_id"], a["state"], strict=True) if s == FLAGGED})
+        flagged = (FLAGGED, AWAITING)
+        return len({int(e) for e, s in zip(a["event_id"], a["state"], strict=True) if s in flagged})
 
 
 class Trajectory:

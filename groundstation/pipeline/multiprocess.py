@@ -102,6 +102,7 @@ def _fit_from(env) -> FitResult:
         hyperparameters=dict(p.get("hyperparameters", {})),
         reliable=bool(p.get("reliable", True)),
         reasons=tuple(p.get("reasons", ())),
+        awaiting_events=tuple(int(e) for e in p.get("awaiting_events", ())),
     )
 
 

@@ -3,10 +3,12 @@
 
 - ``mesh.ply``: the last good mesh, vertex colours = predictive std (``mapping.surface``).
 - ``observations.csv``: ``id, x, y, z, label, t_s, event_id, u, flag, p_false, dv_mps, rebound,
-  sigma_m, p_false_map`` per observation; ``t_s`` is the observation's data (source) time in
-  seconds from the log start; ``u``/``flag`` from the final fit (empty when the observation was not
-  in a fit); ``p_false``, ``dv_mps``, ``rebound``, ``sigma_m``: the detector's evidence for its
-  event (empty when none); ``p_false_map``: the map's posterior that its event is false.
+  sigma_m, p_false_map, awaiting`` per observation; ``t_s`` is the observation's data (source)
+  time in seconds from the log start; ``u``/``flag`` (1: flagged false) from the final fit (empty
+  when the observation was not in a fit); ``p_false``, ``dv_mps``, ``rebound``, ``sigma_m``: the
+  detector's evidence for its event (empty when none); ``p_false_map``: the map's posterior that
+  its event is false; ``awaiting`` 1: flagged only because no other touch corroborates it (a
+  second touch beside it would keep it; ``mapper.lone_flag_p``).
 - ``report.json``: :func:`build_report` (NaN written as ``null``).
 - ``snapshots/snapshot_<fit>.png``: the meshes of the last few fits with the observations
   coloured by flag state (``viewer.headless.render_snapshot``: the three-view renderer with
@@ -28,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from groundstation.contact.detector import LABEL_SURFACE
+from groundstation.mapping.mapper import FLAG_AWAITING, FLAG_FALSE_POSITIVE
 from groundstation.pipeline.offline import PipelineResult
 from groundstation.pipeline.scoring import DetectedEvent, score
 
@@ -80,6 +83,7 @@ def build_report(result: PipelineResult, *, scored: bool = True) -> dict:
         "refit_s_max": max(refit_s) if refit_s else math.nan,
         "refits_unreliable": sum(not f.reliable for f in fits),
         "flagged_events": list(result.final.flagged_events) if result.final else [],
+        "awaiting_events": list(result.final.awaiting_events) if result.final else [],
         "final_fit": None
         if result.final is None
         else {
@@ -137,7 +141,7 @@ def write_observations_csv(result: PipelineResult, path: str | Path) -> Path:
         w = csv.writer(fh)
         w.writerow([
             "id", "x", "y", "z", "label", "t_s", "event_id", "u", "flag",
-            "p_false", "dv_mps", "rebound", "sigma_m", "p_false_map",
+            "p_false", "dv_mps", "rebound", "sigma_m", "p_false_map", "awaiting",
         ])  # fmt: skip
         for o in sorted(result.observations, key=lambda o: o.id):
             u, f, p = lookup.get(o.id, (None, None, None))
@@ -146,9 +150,10 @@ def write_observations_csv(result: PipelineResult, path: str | Path) -> Path:
             w.writerow([
                 o.id, f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", int(o.label),
                 f"{(o.t_ns - result.start_ns) / 1e9:.4f}", o.event_id,
-                num(u, ".6g"), "" if f is None else int(f),
+                num(u, ".6g"), "" if f is None else int(f) & FLAG_FALSE_POSITIVE,
                 num(o.p_false, ".4f"), num(o.dv_mps, ".4f"),
                 int(o.rebound) if evidence else "", num(o.sigma_m, ".4f"), num(p, ".4f"),
+                "" if f is None else int(bool(int(f) & FLAG_AWAITING)),
             ])  # fmt: skip
     return path
 

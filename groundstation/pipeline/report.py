@@ -6,14 +6,16 @@ Sections, top to bottom:
    and how many the map flags, refits, and the truth scores when the log carries ground truth.
 2. **Detector signal**: the impulse detector's trigger score (or, with the threshold detector,
    the filtered |a| in G) against its trigger and release levels, over log time; every contact
-   event shaded from begin to end in its state's colour (green trusted, magenta flagged, grey
-   pending) and numbered; true contacts (``truth.json``) ticked along the bottom by kind.
+   event shaded from begin to end in its state's colour (green trusted, magenta flagged, amber
+   awaiting a second touch, grey pending) and numbered; true contacts (``truth.json``) ticked
+   along the bottom by kind.
 3. **Map**: the final mesh, contact points by state and the flown path from three sides (top,
    front, side) with metre axes, the true structure outlined in dashed red when the log has
    ground truth (the same renderer as every snapshot, ``viewer.headless.render_matplotlib``).
 4. **Contact events**: one row per event: id, begin and end time, place (the mean contact point
    of its observations, else the vehicle position), peak |a|, ``p_false`` when the detector gave
-   one, the map's verdict (trusted / flagged / pending) and the truth label when known.
+   one, the map's verdict (trusted / flagged / awaiting: flagged only because no other touch
+   corroborates it / pending) and the truth label when known.
 5. **Settings**: the command and every setting of the run (``groundstation config show``).
 
 Images are PNGs inlined as ``data:`` URIs; the page is plain HTML and CSS.
@@ -48,7 +50,7 @@ class EventRow:
     place: tuple[float, float, float] | None
     peak_g: float
     p_false: float | None
-    state: str  # trusted | flagged | pending
+    state: str  # trusted | flagged | awaiting | pending
     truth: str | None  # touch | gust | ... | "unmatched" | None (no truth)
 
 
@@ -59,6 +61,7 @@ def event_rows(result, truth: Mapping[str, Any] | None) -> list[EventRow]:
 
     final = result.final
     flagged = set(final.flagged_events) if final is not None else set()
+    awaiting = set(final.awaiting_events) if final is not None else set()
     in_fit = set(final.ids.tolist()) if final is not None else set()
     points: dict[int, list[np.ndarray]] = {}
     fitted_events: set[int] = set()
@@ -93,7 +96,7 @@ def event_rows(result, truth: Mapping[str, Any] | None) -> list[EventRow]:
             place = tuple(float(v) for v in pos) if np.all(np.isfinite(pos)) else None
         state = "pending"
         if ev_id in flagged:
-            state = "flagged"
+            state = "awaiting" if ev_id in awaiting else "flagged"
         elif ev_id in fitted_events:
             state = "trusted"
         label = None
@@ -268,6 +271,7 @@ table{border-collapse:collapse;font-size:13px} td,th{padding:3px 8px;border-bott
 text-align:right} th{background:#f5f5f5} td.l,th.l{text-align:left}
 .summary td{text-align:left} .muted{color:#777;font-size:12px}
 .trusted{color:#1a9933} .flagged{color:#d9198f;font-weight:600} .pending{color:#888}
+.awaiting{color:#d98c00;font-weight:600}
 .gust{color:#d62728;font-weight:600} pre{background:#f7f7f7;padding:8px;font-size:12px;
 overflow-x:auto} img{max-width:100%;border:1px solid #eee}
 """
@@ -309,7 +313,8 @@ def render_html(
             "the threshold"
         )
         + "; each contact event is shaded from begin to end in the map's verdict "
-        "(green trusted, magenta flagged, grey pending) and numbered"
+        "(green trusted, magenta flagged, amber awaiting a second touch, grey pending) and "
+        "numbered"
         + ("; true contacts are ticked along the bottom by kind" if has_truth else "")
         + ".</p>",
         f'<img id="signal-plot" alt="detector signal against the threshold" src="{signal_png}">',
@@ -394,7 +399,8 @@ def write_report_html(
     outline = (truth or {}).get("scene", {}).get("objects", []) if truth else []
     render_matplotlib(map_scene(result, trajectory), buf, 1100, 825, outline)
     map_png = "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
-    n_flag = sum(r.state == "flagged" for r in rows)
+    n_flag = sum(r.state in ("flagged", "awaiting") for r in rows)
+    n_wait = sum(r.state == "awaiting" for r in rows)
     start, end = window_s
     window = "whole log" if start is None and end is None else (
         f"{start or 0:g} s to {'end' if end is None else f'{end:g} s'}")  # fmt: skip
@@ -403,7 +409,11 @@ def write_report_html(
         ("window", window),
         ("mode", str(report.get("mode", result.mode))),
         ("duration", f"{result.duration_s:.1f} s"),
-        ("contacts", f"{len(rows)} ({n_flag} flagged)"),
+        (
+            "contacts",
+            f"{len(rows)} ({n_flag} flagged"
+            + (f", {n_wait} awaiting a second touch)" if n_wait else ")"),
+        ),
         ("observations", str(len(result.observations))),
         ("refits", f"{len(result.fits)} (median {_fmt(report.get('refit_s_median'))} s)"),
     ]

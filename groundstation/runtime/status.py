@@ -117,6 +117,7 @@ class StatusBoard:
         self.gaps: dict[str, int] = {}
         self.contacts = 0
         self.flagged: int | None = None  # contact events the last fit flags as false
+        self.awaiting = 0  # of them, those flagged only for want of a second touch
         self.fit_reliable = True
         self.observations = 0
         self.contact_observations = 0
@@ -192,6 +193,7 @@ class StatusBoard:
         self.fit_reliable = bool(env.payload.get("reliable", True))
         if "flagged_events" in env.payload:
             self.flagged = len(env.payload["flagged_events"])
+            self.awaiting = len(env.payload.get("awaiting_events", ()))
         self._refit(env.payload, ("fit", k))
         ids = env.arrays.get("ids")
         new = []
@@ -312,6 +314,8 @@ class StatusBoard:
             f"contacts {self.contacts}"
             + ("" if self.flagged is None else f" ({self.flagged} flagged)")
         )
+        if self.flagged and self.awaiting:
+            parts.append(f"{self.awaiting} awaiting a second touch")
         parts.append(f"obs {self.observations}")
         if self.refit_s:
             parts.append(f"refit {self.refit_s[-1]:.2f} s")
@@ -356,6 +360,7 @@ class StatusBoard:
             "gaps_by_topic": dict(sorted(self.gaps.items())),
             "contacts": self.contacts,
             "contacts_flagged": self.flagged,
+            "contacts_awaiting": self.awaiting,
             "observations": self.observations,
             "contact_observations": self.contact_observations,
             "refit_s": _stats(self.refit_s),

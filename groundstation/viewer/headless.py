@@ -128,7 +128,7 @@ def _decorate(
     )  # fmt: skip
     handles = [
         Line2D([], [], ls="", marker="o", color=STATE_COLORS[i], label=STATE_NAMES[i])
-        for i in range(3)
+        for i in range(len(STATE_NAMES))
     ] + [Line2D([], [], color=TRAJECTORY_COLOR, label="trajectory")]
     for pts, color, name in (
         (scene.internal_xyz, INTERNAL_COLOR, "internal"),

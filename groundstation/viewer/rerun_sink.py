@@ -196,6 +196,10 @@ class RerunLogger:
             self._contacts()
             n_flag = self.contacts.flagged_events()
             text = f"fit {int(p['fit_index'])}: {self.contacts.events} contacts ({n_flag} flagged)"
+            waiting = p.get("awaiting_events") or ()
+            if waiting:
+                ids = ", ".join(str(int(e)) for e in waiting)
+                text += f"; awaiting a second touch: {ids}"
             level = "INFO" if p.get("reliable", True) else "WARN"
             if level == "WARN":
                 text += "; FIT UNRELIABLE: " + "; ".join(str(r) for r in p.get("reasons", ()))

@@ -14,7 +14,9 @@ Conventions
 - ``mapper.fit`` flags are bit fields (``|u1``); bit 0 (:data:`FLAG_FALSE_POSITIVE`) marks an
   observation the robust model considers a false-positive contact (large ``u_i``).
 - A contact is *trusted* when the latest fit holds it with bit 0 clear, *flagged* when bit 0 is
-  set, *pending* when no fit has included it yet.
+  set, *awaiting* when bit 1 (:data:`FLAG_AWAITING`) is set too (flagged only because no other
+  touch corroborates it: a second touch beside it would keep it), *pending* when no fit has
+  included it yet.
 - Contacts are counted as the status line counts them (``runtime.status``): contact *events*
   (``contact.event`` begins; without them, the distinct events of the contact points) and the
   events the latest fit flags (its ``flagged_events``; without them, the events of its flagged
@@ -40,12 +42,28 @@ from groundstation.errors import ConfigError, InputDataError
 
 #: ``mapper.fit`` flag bit: the observation is a flagged false-positive contact.
 FLAG_FALSE_POSITIVE = 0x01
+#: ``mapper.fit`` flag bit (with bit 0): flagged only for want of a second touch near it.
+FLAG_AWAITING = 0x02
 
 #: Contact states (values of :attr:`Scene.contact_state`).
-TRUSTED, FLAGGED, PENDING = 0, 1, 2
-STATE_NAMES = ("trusted", "flagged", "pending")
-#: RGB in [0, 1] per contact state: green trusted, magenta flagged, grey pending.
-STATE_COLORS = np.array([[0.10, 0.75, 0.20], [0.95, 0.10, 0.75], [0.55, 0.55, 0.55]])
+TRUSTED, FLAGGED, PENDING, AWAITING = 0, 1, 2, 3
+STATE_NAMES = ("trusted", "flagged", "pending", "awaiting")
+#: RGB in [0, 1] per contact state: green trusted, magenta flagged, grey pending, amber
+#: awaiting a second touch.
+STATE_COLORS = np.array(
+    [[0.10, 0.75, 0.20], [0.95, 0.10, 0.75], [0.55, 0.55, 0.55], [1.00, 0.70, 0.00]]
+)
+
+
+def contact_states(flags: np.ndarray) -> np.ndarray:
+    """(k,) int8 state of contacts the fit holds, from their flag bits: :data:`TRUSTED`,
+    :data:`FLAGGED`, or :data:`AWAITING` (flagged, and bit 1 set)."""
+    flags = np.asarray(flags)
+    bad = (flags & FLAG_FALSE_POSITIVE) != 0
+    waiting = bad & ((flags & FLAG_AWAITING) != 0)
+    return np.where(waiting, AWAITING, np.where(bad, FLAGGED, TRUSTED)).astype(np.int8)
+
+
 INTERNAL_COLOR = np.array([0.20, 0.35, 0.95])
 EXTERNAL_COLOR = np.array([0.30, 0.85, 0.95])
 TRAJECTORY_COLOR = np.array([1.00, 0.55, 0.00])
@@ -473,8 +491,7 @@ class ViewModel:
         if self._fit_ids.size and c_ids.size:
             pos = np.clip(np.searchsorted(self._fit_ids, c_ids), 0, self._fit_ids.size - 1)
             found = self._fit_ids[pos] == c_ids
-            bad = (self._fit_flags[pos] & FLAG_FALSE_POSITIVE) != 0
-            state[found] = np.where(bad[found], FLAGGED, TRUSTED)
+            state[found] = contact_states(self._fit_flags[pos][found])
         internal = (
             xyz[label == _LABEL_INTERNAL] if self.settings.show_internal else np.zeros((0, 3))
         )
@@ -539,7 +556,8 @@ class ViewModel:
             "observations_dropped": self.observations_dropped,
             "contacts": int(state.size),
             "trusted": int(np.count_nonzero(state == TRUSTED)),
-            "flagged": int(np.count_nonzero(state == FLAGGED)),
+            "flagged": int(np.count_nonzero((state == FLAGGED) | (state == AWAITING))),
+            "awaiting": int(np.count_nonzero(state == AWAITING)),
             "pending": int(np.count_nonzero(state == PENDING)),
             "fit_flagged": self.flagged_count,
             "events": self.event_counts()[0],
@@ -578,7 +596,9 @@ class ViewModel:
             + ("" if flagged is None else f" ({flagged} flagged)"),
             obs,
             f"contact points {counts['contacts']}: {counts['trusted']} trusted, "
-            f"{counts['flagged']} flagged, {counts['pending']} pending",
+            f"{counts['flagged']} flagged"
+            + (f" ({counts['awaiting']} awaiting a second touch)" if counts.get("awaiting") else "")
+            + f", {counts['pending']} pending",
         ]
         m = self.mesh
         if m is None:

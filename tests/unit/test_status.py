@@ -90,6 +90,11 @@ def test_flagged_contacts_and_an_unreliable_fit_show_in_the_line():
     b.ingest(env("mapper.fit", bad, {"ids": np.array([0], np.int64)}), 4 * S)
     assert "FIT UNRELIABLE (last good mesh kept)" in b.line(5 * S)
     assert b.summary()["contacts_flagged"] == 1
+    assert "awaiting" not in b.line(5 * S)
+    wait = {"fit_index": 2, "flagged_events": [1, 2], "awaiting_events": [2]}
+    b.ingest(env("mapper.fit", wait, {"ids": np.array([0], np.int64)}), 6 * S)
+    assert "(2 flagged)  1 awaiting a second touch" in b.line(7 * S)
+    assert b.summary()["contacts_awaiting"] == 1
 
 
 def test_refit_seconds_finds_nested_seconds_or_ms_and_ignores_junk():

@@ -129,6 +129,7 @@ class FitMessage:
     vertices: np.ndarray | None = None
     triangles: np.ndarray | None = None
     vertex_std: np.ndarray | None = None
+    awaiting_events: tuple[int, ...] = ()
 
     @classmethod
     def from_plain(cls, plain: dict) -> FitMessage:
@@ -157,6 +158,7 @@ def fit_message(fit: FitResult) -> dict:
         "ids": np.asarray(fit.ids, dtype=np.int64),
         "u": np.asarray(fit.u, dtype=np.float64),
         "flags": np.asarray(fit.flags),
+        "awaiting_events": tuple(int(e) for e in fit.awaiting_events),
         **mesh,
     }
 
@@ -453,6 +455,7 @@ class MapperProcess(Worker):
                 "fit_s": fit.fit_s,
                 "hyperparameters": fit.hyperparameters,
                 "flagged_events": list(fit.flagged_events),
+                "awaiting_events": list(fit.awaiting_events),
             },
             {"ids": fit.ids, "u": fit.u, "flags": fit.flags},
             source_ns=fit.data_ns,

@@ -12,6 +12,7 @@ import pytest
 from groundstation.contact.detector import Observation
 from groundstation.errors import ConfigError, NotFittedError
 from groundstation.mapping.mapper import (
+    FLAG_AWAITING,
     FLAG_FALSE_POSITIVE,
     Mapper,
     MapperSettings,
@@ -265,9 +266,10 @@ def test_an_uncorroborated_doubted_touch_is_decided_on_the_lone_line_until_corro
     m = Mapper(MapperSettings())
     m.add(o)
     fit = m.refit()
-    assert fit.flagged_events == (77,)
+    assert fit.flagged_events == (77,) and fit.awaiting_events == (77,)
     assert np.linalg.norm(fit.mesh.vertices - lone, axis=1).min() > 1.0
-    assert np.all(fit.flags[np.isin(fit.ids, [o_.id for o_ in o if o_.event_id == 77])] == 1)
+    flags = fit.flags[np.isin(fit.ids, [o_.id for o_ in o if o_.event_id == 77])]
+    assert np.all(flags == FLAG_FALSE_POSITIVE | FLAG_AWAITING)  # flagged, awaiting a 2nd touch
     up = np.array([0.0, 0.0, 1.0])
     i = max(o_.id for o_ in o) + 1
     c = lone + [0.3, 0.0, 0.0]
@@ -277,6 +279,7 @@ def test_an_uncorroborated_doubted_touch_is_decided_on_the_lone_line_until_corro
     ])  # fmt: skip
     fit = m.refit()
     assert 77 not in fit.flagged_events and 78 not in fit.flagged_events
+    assert fit.awaiting_events == () and not np.any(fit.flags & FLAG_AWAITING)
     assert np.linalg.norm(fit.mesh.vertices - lone, axis=1).min() < 0.15
 
 
@@ -297,6 +300,7 @@ def test_an_event_the_map_believes_false_corroborates_nothing():
     m.add(o)
     fit = m.refit()
     assert fit.flagged_events == (77, 79)
+    assert fit.awaiting_events == (77,)  # the gust is flagged on its own posterior
     assert np.linalg.norm(fit.mesh.vertices - lone, axis=1).min() > 1.0
     # with every event vouching (the lone line as loose as flag_p), both lines are one
     m = Mapper(MapperSettings(lone_flag_p=0.5))

@@ -115,6 +115,16 @@ def test_contacts_are_points_coloured_by_state_and_p_false_is_carried():
     log = Log.FromString(got["/log"][0].data)
     assert log.name == "mapper" and "2 contacts (1 flagged)" not in log.message  # no begins yet
     assert "fit 0" in log.message
+    # the next fit flags event 1 only for want of a second touch (bits 0 and 1): awaiting
+    wait = env("mapper.fit", 3_000_000_000,
+               {"fit_index": 1, "flagged_events": [1], "awaiting_events": [1]},
+               {"ids": np.array([0, 1, 2, 3, 10]), "u": np.array([0.1, 0.1, 5.0, 5.0, 0.1]),
+                "flags": np.array([0, 0, 3, 3, 0], dtype=np.uint8)})  # fmt: skip
+    got = by_topic(tr.translate(wait))
+    _, rec = _cloud(got["/map/contacts"][-1])
+    assert rec["state"].tolist() == [0, 0, 3, 3]  # trusted, trusted, awaiting, awaiting
+    assert rec["red"][2] > rec["green"][2] > rec["blue"][2]  # amber
+    assert "awaiting a second touch: 1" in Log.FromString(got["/log"][0].data).message
 
 
 def test_pose_gives_pose_transform_and_a_thinned_trajectory():

@@ -65,6 +65,8 @@ def test_a_fit_reaches_the_shell_without_the_mapping_core():
     assert np.array_equal(msg.triangles, fit.mesh.faces)
     assert msg.vertices.dtype == np.float32 and msg.triangles.dtype == np.int32
     assert msg.fit_s == fit.timings["total_s"] and msg.flagged_events == fit.flagged_events
+    waiting = FitMessage.from_plain(fit_message(dataclasses.replace(fit, awaiting_events=(7,))))
+    assert msg.awaiting_events == () and waiting.awaiting_events == (7,)
 
     # a fresh interpreter with the shell's imports only: unpickling imports nothing new
     res = subprocess.run([sys.executable, "-c", SHELL], input=pickle.dumps(plain),

@@ -11,6 +11,7 @@ import pytest
 from groundstation.errors import ConfigError
 from groundstation.mapping.surface import std_colors
 from groundstation.viewer.scene import (
+    AWAITING,
     FLAGGED,
     PENDING,
     STATE_COLORS,
@@ -28,21 +29,24 @@ def test_contact_states_follow_fit_flags():
     for i, x in enumerate(pts):
         vm.ingest_observation(i, 0, x)
     vm.ingest_observation(100, -1, pts[0] * 0.9)  # internal: never a contact
-    # ids 0..3 in the fit: 1 flagged (bit 0), 3 has only another bit set -> trusted
+    # ids 0..3 in the fit: 1 flagged (bit 0), 2 flagged awaiting a second touch (bits 0 and
+    # 1), 3 has only bit 1 set (no flag to wait on) -> trusted
     vm.ingest_fit(
         np.array([3, 0, 1, 2, 100]),
-        np.array([0.1, 0.1, 9.0, 0.1, 0.1]),
-        np.array([0x02, 0, 1, 0, 0], dtype=np.uint8),
+        np.array([0.1, 0.1, 9.0, 9.0, 0.1]),
+        np.array([0x02, 0, 1, 0x03, 0], dtype=np.uint8),
         fit_index=7,
     )
     sc = vm.scene()
     assert sc.contacts_xyz.shape == (6, 3)
     np.testing.assert_array_equal(sc.contacts_xyz, pts)
-    want = [TRUSTED, FLAGGED, TRUSTED, TRUSTED, PENDING, PENDING]
+    want = [TRUSTED, FLAGGED, AWAITING, TRUSTED, PENDING, PENDING]
     np.testing.assert_array_equal(sc.contact_state, want)
     np.testing.assert_array_equal(sc.contacts_rgb, STATE_COLORS[want])
-    assert len({tuple(c) for c in STATE_COLORS}) == 3
-    assert sc.counts["flagged"] == 1 and sc.counts["pending"] == 2 and sc.counts["trusted"] == 3
+    assert len({tuple(c) for c in STATE_COLORS}) == 4
+    assert sc.counts["flagged"] == 2 and sc.counts["awaiting"] == 1
+    assert sc.counts["pending"] == 2 and sc.counts["trusted"] == 2
+    assert "2 flagged (1 awaiting a second touch), 2 pending" in sc.caption
     # a newer fit supersedes the old one
     vm.ingest_fit(np.arange(6), np.ones(6), np.array([0, 0, 0, 0, 1, 1], np.uint8), fit_index=8)
     np.testing.assert_array_equal(vm.scene().contact_state, [TRUSTED] * 4 + [FLAGGED, FLAGGED])
