@@ -590,20 +590,10 @@ def _corroborators(
 
 def _lone(contacts: list[np.ndarray], centres: np.ndarray, radius: float) -> np.ndarray:
     """(G,) bool: no other group's contact lies within ``radius`` of the group's contact
-    centroid ``centres[g]`` (groups without contacts count as lone; ``radius`` <= 0: every
-    group)."""
-    lone = np.ones(len(contacts), dtype=bool)
-    sizes = [len(cs) for cs in contacts]
-    if radius <= 0 or not sum(sizes):
-        return lone
-    from scipy.spatial import cKDTree
-
-    owner = np.repeat(np.arange(len(contacts)), sizes)
-    has = np.flatnonzero(sizes)
-    nears = cKDTree(np.concatenate(contacts)).query_ball_point(centres[has], radius)
-    for g, near in zip(has, nears, strict=True):
-        lone[g] = not np.any(owner[np.asarray(near, dtype=np.int64)] != g)
-    return lone
+    centroid ``centres[g]`` (groups without contacts or a finite centroid count as lone;
+    ``radius`` <= 0: every group)."""
+    near = _corroborators(contacts, centres, radius)
+    return np.array([c is None or c.size == 0 for c in near], dtype=bool)
 
 
 def _faces(n: np.ndarray) -> np.ndarray:
