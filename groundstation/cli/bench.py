@@ -107,6 +107,14 @@ def add_detector_arguments(parser: argparse.ArgumentParser) -> None:
         help="fit the evidence model on --train-seeds first, write it to --out and report with it",
     )
     parser.add_argument(
+        "--degree",
+        type=int,
+        choices=(1, 2),
+        default=1,
+        help="with --train: 1 fits the shipped, linear model; 2 adds every product of two "
+        "inputs (better on the SITL's tuning seeds, extrapolates badly: see the README)",
+    )
+    parser.add_argument(
         "--variant",
         action="append",
         default=[],
@@ -164,9 +172,10 @@ def run_detector(args: argparse.Namespace) -> int:
             f"{sum(e.kind == 'slow_touch' for e in events)} slow touches, "
             f"{sum(e.kind == 'gust' for e in events)} gusts, "
             f"{sum(e.kind == 'none' for e in events)} unmatched candidates "
-            f"(weighted to {db.UNMATCHED_SHARE:.0%} of the false class)"
+            f"(weighted to {db.UNMATCHED_SHARE:.0%} of the false class); "
+            f"{db.EVIDENCE_FITS[args.degree].describe()}"
         )
-        model = db.fit_evidence_model(events, provenance)
+        model = db.fit_evidence_model(events, provenance, db.EVIDENCE_FITS[args.degree])
         model_path = out / "evidence_model.json"
         db.write_json(model_path, model.to_dict())
         model_note = f"model fitted on train seeds {args.train_seeds}: {model_path}"

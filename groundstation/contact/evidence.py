@@ -21,7 +21,8 @@ A touch and a gust leave different traces (issue 12, DESIGN.md §7):
   window before the onset, from the attitude; no mocap needed).
 
 :class:`EvidenceModel` combines them in a logistic model on those named features (one with
-mocap, one from the IMU alone for logs without poses), fitted on labelled SITL flights by
+mocap, one from the IMU alone for logs without poses; of degree 1, or 2 with their products
+two by two, :func:`design`), fitted on labelled SITL flights by
 ``groundstation bench detector --train`` and shipped as ``evidence_model.json`` beside this
 module (its ``provenance`` says which flights and seeds). ``p_false`` is calibrated for a
 mix of touches and false impulses as in those flights (about one to one).
@@ -125,28 +126,69 @@ def model_inputs(f: ImpulseFeatures) -> dict[str, float]:
     return z
 
 
+def design(x: np.ndarray, degree: int) -> np.ndarray:
+    """Rows of standardised inputs -> the logistic model's terms: the inputs themselves, and
+    with ``degree`` 2 also every product of two of them, squares included (``x_i x_j`` for
+    ``i <= j`` in row-major order). One function for the fit and the prediction, so the
+    order of the coefficients cannot drift between them."""
+    x = np.atleast_2d(np.asarray(x, dtype=float))
+    if degree == 1:
+        return x
+    i, j = np.triu_indices(x.shape[1])
+    return np.hstack([x, x[:, i] * x[:, j]])
+
+
+def n_terms(n_inputs: int, degree: int) -> int:
+    """Number of terms :func:`design` makes of ``n_inputs`` inputs."""
+    return n_inputs if degree == 1 else n_inputs + n_inputs * (n_inputs + 1) // 2
+
+
 @dataclasses.dataclass(frozen=True)
 class Logistic:
-    """``p = sigmoid(intercept + sum_k coef_k (z_k - mean_k) / scale_k)`` on named inputs."""
+    """``p = sigmoid(intercept + coef . design(clip((z - mean) / scale), degree))`` on named
+    inputs.
+
+    With ``degree`` 2 the model also weighs products of two inputs: a touch is told from a gust
+    by combinations (a short impulse *and* a rebound that follows from the approach), which
+    one weight per input cannot express. ``clip_sd`` bounds each standardised input first, so
+    a reading far outside the training flights (another airframe) cannot dominate by its square.
+    The shipped model is of degree 1: the second degree extrapolates badly where the training
+    flights are thin (``groundstation.bench.detector.EVIDENCE_FITS``).
+    """
 
     names: tuple[str, ...]
     mean: tuple[float, ...]
     scale: tuple[float, ...]
     coef: tuple[float, ...]
     intercept: float
+    degree: int = 1
+    clip_sd: float | None = None
 
     def __post_init__(self) -> None:
         n = len(self.names)
-        if not (len(self.mean) == len(self.scale) == len(self.coef) == n) or n == 0:
-            raise ConfigError("evidence model: names, mean, scale and coef must have one length")
+        if not (len(self.mean) == len(self.scale) == n) or n == 0:
+            raise ConfigError("evidence model: names, mean and scale must have one length")
+        if self.degree not in (1, 2):
+            raise ConfigError(f"evidence model: degree must be 1 or 2, not {self.degree}")
+        if len(self.coef) != n_terms(n, self.degree):
+            raise ConfigError(
+                f"evidence model: {n} inputs of degree {self.degree} need "
+                f"{n_terms(n, self.degree)} coefficients, not {len(self.coef)}"
+            )
+        if self.clip_sd is not None and not self.clip_sd > 0:
+            raise ConfigError(f"evidence model: clip_sd must be positive, not {self.clip_sd}")
+
+    def standardise(self, x: np.ndarray) -> np.ndarray:
+        """Rows of raw inputs (in ``names`` order) -> standardised, clipped inputs."""
+        s = (np.asarray(x, dtype=float) - np.asarray(self.mean)) / np.asarray(self.scale)
+        return s if self.clip_sd is None else np.clip(s, -self.clip_sd, self.clip_sd)
 
     def probability(self, z: dict[str, float]) -> float:
         """An input missing from ``z`` (a feature not measurable) counts as its training mean:
-        it neither raises nor lowers ``p``."""
+        it neither raises nor lowers ``p`` (its standardised value and all its products are 0)."""
         x = np.array([z.get(k, m) for k, m in zip(self.names, self.mean, strict=True)])
-        s = self.intercept + float(
-            np.dot(self.coef, (x - np.asarray(self.mean)) / np.asarray(self.scale))
-        )
+        terms = design(self.standardise(x), self.degree)[0]
+        s = self.intercept + float(np.dot(self.coef, terms))
         return float(1.0 / (1.0 + math.exp(-max(min(s, 50.0), -50.0))))
 
     def to_dict(self) -> dict:
@@ -154,13 +196,18 @@ class Logistic:
 
     @classmethod
     def from_dict(cls, d: dict) -> Logistic:
+        """A block of ``evidence_model.json``; ``degree`` (1) and ``clip_sd`` (none) are
+        optional, so models written before they existed load unchanged."""
         try:
+            clip = d.get("clip_sd")
             return cls(
                 tuple(d["names"]),
                 tuple(float(v) for v in d["mean"]),
                 tuple(float(v) for v in d["scale"]),
                 tuple(float(v) for v in d["coef"]),
                 float(d["intercept"]),
+                int(d.get("degree", 1)),
+                None if clip is None else float(clip),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"evidence model: bad logistic block ({exc})") from None

@@ -120,19 +120,21 @@ def _features(rng, gust: bool) -> dict:
     }
 
 
-def test_fit_evidence_model_separates_and_round_trips(tmp_path):
+@pytest.mark.parametrize("degree", [1, 2])
+def test_fit_evidence_model_separates_and_round_trips(tmp_path, degree):
     rng = np.random.default_rng(0)
     events = [
         db.LabelledEvent(
             "f", "simple", kind, math.nan, _features(rng, kind in ("gust", "none")), False
         )
-        for kind in ["touch"] * 60 + ["gust"] * 40 + ["none"] * 10 + ["slow_touch"] * 5
+        for kind in ["touch"] * 180 + ["gust"] * 120 + ["none"] * 30 + ["slow_touch"] * 15
     ]
-    model = db.fit_evidence_model(events, "unit test")
+    model = db.fit_evidence_model(events, "unit test", db.EVIDENCE_FITS[degree])
+    assert model.with_mocap.degree == model.imu_only.degree == degree
     path = tmp_path / "m.json"
     db.write_json(path, model.to_dict())
     again = EvidenceModel.load(path)
-    assert again.provenance == "unit test"
+    assert again == model and again.provenance == "unit test"
     from groundstation.contact.evidence import ImpulseFeatures
 
     p_touch = again.p_false(ImpulseFeatures(**_features(rng, False)))

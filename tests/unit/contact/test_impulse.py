@@ -8,6 +8,7 @@ the integral of that motion, so mocap approach and rebound speeds are exact too.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -19,7 +20,9 @@ from groundstation.contact.evidence import (
     EvidenceModel,
     ImpulseFeatures,
     Logistic,
+    design,
     model_inputs,
+    n_terms,
 )
 from groundstation.contact.impulse import ImpulseDetector
 from groundstation.contact.settings import ContactSettings, G
@@ -281,6 +284,52 @@ def test_a_missing_input_counts_as_its_training_mean():
     still = model_inputs(ImpulseFeatures(2.0, 2.5, 0.03, 0.42, 0.1, turn_rate_radps=0.0))
     assert fast["log_turn_rate"] == pytest.approx(math.log(3.0))  # capped
     assert still["log_turn_rate"] == pytest.approx(math.log(0.3))  # floored
+
+
+def test_a_second_degree_model_weighs_products_of_two_inputs():
+    names = ("log_duration_ms", "rebound")
+    # p = sigmoid(2 x0 x1): false when both are high or both low, true otherwise
+    lg = Logistic(names, (3.0, 0.5), (1.0, 0.5), (0.0, 0.0, 0.0, 2.0, 0.0), 0.0, degree=2)
+    assert lg.probability({"log_duration_ms": 4.0, "rebound": 1.0}) == pytest.approx(
+        1.0 / (1.0 + math.exp(-2.0))
+    )
+    assert lg.probability({"log_duration_ms": 2.0, "rebound": 1.0}) < 0.5
+    # a missing input is its training mean: it and every product with it are 0
+    assert lg.probability({"log_duration_ms": 9.0}) == pytest.approx(0.5)
+    # the terms are the inputs, then x_i x_j for i <= j, in one order for fit and prediction
+    assert design(np.array([[2.0, 3.0]]), 2).tolist() == [[2.0, 3.0, 4.0, 6.0, 9.0]]
+    assert n_terms(2, 2) == 5 and n_terms(10, 2) == 65 and n_terms(3, 1) == 3
+
+
+def test_clipping_bounds_an_input_far_outside_the_training_flights():
+    squared = Logistic(("log_peak_g",), (0.0,), (1.0,), (0.0, 1.0), -4.0, degree=2, clip_sd=2.0)
+    assert squared.probability({"log_peak_g": 50.0}) == pytest.approx(0.5)  # 2^2 - 4
+    free = dataclasses.replace(squared, clip_sd=None)
+    assert free.probability({"log_peak_g": 50.0}) > 0.999
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"coef": (1.0, 2.0)}, "need 5 coefficients"),
+        ({"degree": 3}, "degree must be 1 or 2"),
+        ({"clip_sd": 0.0}, "clip_sd must be positive"),
+    ],
+)
+def test_a_malformed_second_degree_model_is_refused(kwargs, match):
+    base = {"names": ("a", "b"), "mean": (0.0, 0.0), "scale": (1.0, 1.0), "intercept": 0.0,
+            "coef": (0.0,) * 5, "degree": 2}  # fmt: skip
+    with pytest.raises(ConfigError, match=match):
+        Logistic(**{**base, **kwargs})
+
+
+def test_a_model_written_before_the_degree_existed_loads_as_linear():
+    block = {"names": ["a"], "mean": [1.0], "scale": [2.0], "coef": [3.0], "intercept": 0.5}
+    lg = Logistic.from_dict(block)
+    assert (lg.degree, lg.clip_sd) == (1, None)
+    assert Logistic.from_dict(lg.to_dict()) == lg
+    shipped = EvidenceModel.load()
+    assert Logistic.from_dict(shipped.with_mocap.to_dict()) == shipped.with_mocap
 
 
 def turning_before(data, t_stop, rate, t_start):
