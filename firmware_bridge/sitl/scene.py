@@ -310,6 +310,26 @@ class Scene:
             out.extend(obj.faces(i, step))
         return out
 
+    def exposed_area(self, rng: np.random.Generator, n: int = 20_000) -> float:
+        """Area of the surface that exists (:meth:`sample_surface`'s), m²: every primitive's
+        area times the share of ``n`` points drawn on them by area that are exposed (not on
+        the floor, not inside or against another structure). Monte Carlo: its relative error
+        is about ``sqrt(hidden share / n)``, under 1 % at the default ``n``."""
+        if not self.objects or n <= 0:
+            return 0.0
+        areas = np.array([o.area for o in self.objects])
+        floor = float(self.region_min[2])
+        counts = rng.multinomial(n, areas / areas.sum())
+        kept = 0
+        for i, (obj, m) in enumerate(zip(self.objects, counts, strict=True)):
+            p = obj.area_points(rng, int(m))
+            keep = p[:, 2] > floor + 1e-9
+            for j, other in enumerate(self.objects):
+                if j != i:
+                    keep &= ~other.holds(p)
+            kept += int(keep.sum())
+        return float(areas.sum()) * kept / n
+
     def sample_surface(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """``n`` ground-truth points uniform by area on the surface that exists, (n, 3) metres.
 

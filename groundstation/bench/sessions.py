@@ -22,7 +22,9 @@ For every truth metric (``pipeline.pooling.TRUTH_METRICS``) the mean, median and
 gusty flights, the same over their controls, and the ratio of the means (gusty / control).
 Accuracy that comes from smoothing rather than from rejecting false contacts shows up as *no*
 gap to the control; a robust map is as good in gusty air as in calm air (ratio ~1 for errors).
-Event shares are pooled over flights (``pipeline.pooling.pool``).
+Event shares are pooled over flights (``pipeline.pooling.pool``), and so is the touched
+surface missing within 0.2 m of a touch, by area (``missing_near_by_area``): the mean of
+``missing_share_near`` weighs a flight with one touch as much as one with fifty.
 """
 
 from __future__ import annotations
@@ -167,6 +169,9 @@ def markdown(comparison: Mapping[str, Any], overrides: Mapping[str, Sequence[str
                 "events: slow touches flagged": lambda p: _share(p, "slow_touch_events_flagged"),
                 "events: flag precision": lambda p: _share(p, "fp_precision"),
                 "events: touches detected": lambda p: _share(p, "detection_recall"),
+                "touched surface missing within 0.2 m, by area (m²)": lambda p: _share(
+                    p, "missing_near_by_area", ".3f", ".2f"
+                ),
                 "u-AUC gust vs touch": lambda p: fmt(p["u_auc"], ".2f"),
                 "refit median (s)": lambda p: fmt(p["refit_s_median"], ".2f"),
                 "task wall median (s)": lambda p: fmt(p["task_wall_s"]["median"], ".1f"),
@@ -179,9 +184,9 @@ def markdown(comparison: Mapping[str, Any], overrides: Mapping[str, Sequence[str
     return "\n".join(lines) + "\n"
 
 
-def _share(p: Mapping[str, Any], key: str) -> str:
+def _share(p: Mapping[str, Any], key: str, share: str = ".2f", counts: str = ".0f") -> str:
     s = p["shares"][key]
-    return f"{fmt(s['share'], '.2f')} ({fmt(s['num'], '.0f')}/{fmt(s['den'], '.0f')})"
+    return f"{fmt(s['share'], share)} ({fmt(s['num'], counts)}/{fmt(s['den'], counts)})"
 
 
 def control_chart(comparison: Mapping[str, Any], path: Path) -> Path:

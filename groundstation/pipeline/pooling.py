@@ -6,7 +6,11 @@ Pooled metrics (per variant, over its finished tasks)
 tasks that have it, its mean, median and worst (largest for errors, smallest for rates to
 maximise). ``shares``: event counts pooled over tasks (gust / touch events flagged, touch
 events flagged among those whose contacts lie on the surface and among the mislocated ones
-(``pipeline.scoring``), slow touch events flagged, flag precision, touches detected).
+(``pipeline.scoring``), slow touch events flagged, flag precision, touches detected) and
+``missing_near_by_area``: the touched surface missing within 0.2 m of a touch, pooled by area
+over the tasks (``missing_area_near_m2`` over ``touched_area_near_m2``, m²: the share of all
+the touched surface the maps lack, where the mean of ``missing_share_near`` weighs every
+flight alike).
 ``u_auc``: probability that a gust event's median contact u exceeds a touch event's.
 ``refit_s_median``: median over every refit of every task. ``task_wall_s``: mean / median /
 max wall time of one task (replay + outputs).
@@ -153,6 +157,13 @@ def pool(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             den += float(w)
         return _share(num, den)
 
+    def by_area(part: str, whole: str) -> dict[str, float]:
+        """Sum of ``part`` over sum of ``whole``, over the reports that have both."""
+        pairs = [_finite([rep.get(part), rep.get(whole)]) for rep in reports]
+        return _share(
+            sum(p[0] for p in pairs if len(p) == 2), sum(p[1] for p in pairs if len(p) == 2)
+        )
+
     def on_surface(rep: Mapping[str, Any]) -> float | None:
         n, off = rep.get("events_touch"), rep.get("events_touch_mislocated")
         return None if n is None or off is None else float(n) - float(off)
@@ -173,6 +184,7 @@ def pool(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "detection_recall": _share(
             total("detection_recall", "truth_touches"), total("truth_touches")
         ),
+        "missing_near_by_area": by_area("missing_area_near_m2", "touched_area_near_m2"),
     }
     events = [tuple(e) for x in extras for e in x.get("event_u", [])]
     refits = _finite(t for x in extras for t in x.get("refit_s", []))

@@ -26,6 +26,12 @@ Metrics (all distances in metres)
     The same share within ``near_radius_m`` (0.2 m) of a true touch: the surface the touches
     themselves lie on. The gap between the two is surface the map would have to extrapolate
     from 0.2 to 0.5 m beyond a touch (round a corner, down a face no touch reached).
+``touched_area_near_m2``, ``missing_area_near_m2``
+    The area of that true surface within ``near_radius_m`` of a true touch, and the part of
+    it that is missing (``missing_share_near`` times it), m². A bench pools them into the share
+    of all the touched surface of many flights that is missing (``pipeline.pooling``): the
+    mean of ``missing_share_near`` over flights weighs a flight with one touch as much as one
+    with fifty.
 ``phantom_area_m2``, ``phantom_max_patch_m2``
     Mesh faces farther than ``phantom_m`` (0.15 m) from the true surface, joined into patches
     by shared vertices: their total area and the largest patch's (surface the map invents).
@@ -232,9 +238,15 @@ def surface_scores(
     nan["missing_share"] = 1.0 if len(touched_points(truth)) else math.nan
     nan["missing_share_near"] = nan["missing_share"]
     nan["phantom_patches"] = []
-    if mesh is None or mesh.is_empty:
+    scene = _scene(truth) if "scene" in truth else None
+    touched_near = (
+        math.nan if scene is None
+        else touched_area(scene, touched_points(truth), near_radius_m, seed=seed)
+    )  # fmt: skip
+    nan["touched_area_near_m2"] = touched_near
+    nan["missing_area_near_m2"] = touched_near if len(touched_points(truth)) else math.nan
+    if mesh is None or mesh.is_empty or scene is None:
         return nan
-    scene = _scene(truth)
     rng = np.random.default_rng(seed)
     area = _true_area(scene)
     true_pts = scene.sample_surface(rng, int(min(50_000, max(2000, area / spacing_m**2))))
@@ -273,10 +285,29 @@ def surface_scores(
         "truth_to_mesh_median_m": t2m,
         "missing_share": missing,
         "missing_share_near": missing_near,
+        "touched_area_near_m2": touched_near,
+        "missing_area_near_m2": missing_near * touched_near,
         "phantom_area_m2": float(sum(p.area_m2 for p in patches)),
         "phantom_max_patch_m2": patches[0].area_m2 if patches else 0.0,
         "phantom_patches": [p.as_dict() for p in patches[:PHANTOM_LISTED]],
     }
+
+
+def touched_area(scene, touched: np.ndarray, radius_m: float, *, seed: int = 0) -> float:
+    """Area (m²) of the surface that exists within ``radius_m`` of any of the ``touched``
+    points (k, 3) and inside the scene's region: the exposed area times the share of points
+    drawn uniformly on it that lie there (its own random draws, so the other metrics do not
+    move with it). 0 when nothing was touched."""
+    if len(touched) == 0 or not scene.objects:
+        return 0.0
+    rng = np.random.default_rng([seed, 1])
+    exposed = scene.exposed_area(rng)
+    pts = scene.sample_surface(rng, 20_000)
+    if not len(pts):
+        return 0.0
+    lo, hi = np.asarray(scene.region_min), np.asarray(scene.region_max)
+    inside = np.all((pts >= lo) & (pts <= hi), axis=1)
+    return exposed * float(np.mean(inside & _near(pts, touched, radius_m)))
 
 
 def _true_area(scene) -> float:

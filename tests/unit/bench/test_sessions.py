@@ -51,7 +51,9 @@ def _plan():
 
 
 def _rec(chamfer):
-    return {"status": "done", "report": {"chamfer_m": chamfer, "missing_share": chamfer},
+    report = {"chamfer_m": chamfer, "missing_share": chamfer,
+              "touched_area_near_m2": 1.0, "missing_area_near_m2": chamfer}  # fmt: skip
+    return {"status": "done", "report": report,
             "done": {"refit_s": [0.1], "task_wall_s": 1.0}}  # fmt: skip
 
 
@@ -73,6 +75,8 @@ def test_groups_and_ratio_to_the_control():
     assert "### simple (1/1 flights, controls 1/1)" in text
     assert "| chamfer_m | 0.200 / 0.200 / 0.200 | 0.100 / 0.100 / 0.100 | 2.00 |" in text
     assert "### bundled (1/1 flights)" in text
+    by_area = "| touched surface missing within 0.2 m, by area (m²) |"
+    assert f"{by_area} 0.200 (0.20/1.00) | 0.100 (0.10/1.00) | |" in text  # simple, gusty | control
 
 
 def test_ratio_is_nan_when_undefined():

@@ -199,6 +199,25 @@ def test_pool_splits_touch_flags_by_where_the_contacts_lie():
     assert (off["num"], off["den"]) == (1, 1)
 
 
+def test_pool_weighs_the_missing_surface_by_touched_area():
+    # a flight with one touch that lost all of it weighs 0.1 m² against 2 m² half-kept:
+    # by area 1.1 / 2.1, where the mean over flights would say 0.75
+    one = _record(0.1, 3, 2, 2)
+    one["report"].update(missing_share_near=1.0, touched_area_near_m2=0.1,
+                         missing_area_near_m2=0.1)  # fmt: skip
+    many = _record(0.1, 3, 2, 2)
+    many["report"].update(missing_share_near=0.5, touched_area_near_m2=2.0,
+                          missing_area_near_m2=1.0)  # fmt: skip
+    untouched = _record(0.1, 3, 2, 2)  # a contact-free flight: nothing to miss
+    untouched["report"].update(touched_area_near_m2=0.0, missing_area_near_m2=math.nan)
+    older = _record(0.1, 3, 2, 2)  # a report from before the areas were scored
+    p = pool([one, many, untouched, older])
+    s = p["shares"]["missing_near_by_area"]
+    assert (s["num"], s["den"]) == pytest.approx((1.1, 2.1))
+    assert s["share"] == pytest.approx(1.1 / 2.1)
+    assert p["metrics"]["missing_share_near"]["mean"] == pytest.approx(0.75)
+
+
 def test_pool_counts_slow_touch_flags_over_the_reports_that_have_them():
     a = _record(0.1, 3, 2, 2)
     a["report"].update(events_slow_touch=4, slow_touch_events_flagged=0.25)

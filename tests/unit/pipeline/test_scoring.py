@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
 from groundstation.pipeline.scoring import surface_scores
 
 
@@ -48,6 +50,17 @@ def test_near_missing_counts_only_the_surface_around_the_touches():
     s = surface_scores(mesh, truth)
     assert s["missing_share_near"] < 0.02
     assert s["missing_share"] > 0.3  # the wall's other face and the disk beyond 0.25 m
+    # the touched surface within 0.2 m: a disc of 0.2 m on the wall's face, and the part of it
+    # missing; without a mesh all of it is missing
+    assert s["touched_area_near_m2"] == pytest.approx(math.pi * 0.2**2, rel=0.1)
+    assert s["missing_area_near_m2"] == pytest.approx(
+        s["missing_share_near"] * s["touched_area_near_m2"]
+    )
+    bare = surface_scores(None, truth)
+    assert bare["missing_area_near_m2"] == bare["touched_area_near_m2"] > 0.1
+    untouched = surface_scores(None, {"scene": scene, "contacts": []})
+    assert untouched["touched_area_near_m2"] == 0.0
+    assert math.isnan(untouched["missing_area_near_m2"])
 
 
 def test_a_mesh_on_the_floor_is_real_surface_and_one_below_it_is_phantom():

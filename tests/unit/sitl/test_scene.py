@@ -172,6 +172,9 @@ def test_surface_samples_are_the_exposed_surface_uniform_by_area():
     on_pillar = np.mean((pts[:, 2] < 1 - 1e-9) & (pts[:, 0] < 4))
     assert on_cube == pytest.approx(areas["cube"] / total, abs=0.01)
     assert on_pillar == pytest.approx(areas["pillar"] / total, abs=0.01)
+    # the exposed area is the same surface's: no floor faces, nothing under the deck
+    assert scene.exposed_area(np.random.default_rng(1), 100_000) == pytest.approx(total, rel=0.01)
+    assert parse_scene(_scene([])).exposed_area(np.random.default_rng(1)) == 0.0
 
 
 def test_primitives_hold_their_inside_and_surface_only():
