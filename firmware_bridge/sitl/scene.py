@@ -318,17 +318,21 @@ class Scene:
         if not self.objects or n <= 0:
             return 0.0
         areas = np.array([o.area for o in self.objects])
-        floor = float(self.region_min[2])
         counts = rng.multinomial(n, areas / areas.sum())
-        kept = 0
-        for i, (obj, m) in enumerate(zip(self.objects, counts, strict=True)):
-            p = obj.area_points(rng, int(m))
-            keep = p[:, 2] > floor + 1e-9
-            for j, other in enumerate(self.objects):
-                if j != i:
-                    keep &= ~other.holds(p)
-            kept += int(keep.sum())
+        kept = sum(
+            int(self._exposed(i, obj.area_points(rng, int(m))).sum())
+            for i, (obj, m) in enumerate(zip(self.objects, counts, strict=True))
+        )
         return float(areas.sum()) * kept / n
+
+    def _exposed(self, i: int, p: np.ndarray) -> np.ndarray:
+        """(k,) bool: points ``p`` on object ``i`` that are surface that exists: above the
+        floor and not inside or against another structure."""
+        keep = p[:, 2] > float(self.region_min[2]) + 1e-9
+        for j, other in enumerate(self.objects):
+            if j != i:
+                keep &= ~other.holds(p)
+        return keep
 
     def sample_surface(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """``n`` ground-truth points uniform by area on the surface that exists, (n, 3) metres.
@@ -342,17 +346,13 @@ class Scene:
         if not self.objects or n <= 0:
             return np.zeros((0, 3))
         areas = np.array([o.area for o in self.objects])
-        floor = float(self.region_min[2])
         out: list[np.ndarray] = []
         have = 0
         for _ in range(32):  # each round keeps the exposed share of 2x what is still missing
             counts = rng.multinomial(2 * (n - have) + 16, areas / areas.sum())
             for i, (obj, m) in enumerate(zip(self.objects, counts, strict=True)):
                 p = obj.area_points(rng, int(m))
-                keep = p[:, 2] > floor + 1e-9
-                for j, other in enumerate(self.objects):
-                    if j != i:
-                        keep &= ~other.holds(p)
+                keep = self._exposed(i, p)
                 out.append(p[keep])
                 have += int(keep.sum())
             if have >= n:
