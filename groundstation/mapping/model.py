@@ -104,6 +104,8 @@ def training_policy(
         plane_reach_m=mapping.plane_reach_m,
         plane_noise_per_m=mapping.plane_noise_per_m,
         plane_max_p_false=mapping.plane_max_p_false,
+        plane_guard_m=mapping.plane_guard_m,
+        plane_guard_solid_m=mapping.plane_guard_solid_m,
         settled_voxel_m=mapping.settled_voxel_m,
         companion_s=mapping.companion_s,
         lone_reach_m=mapping.lone_reach_m,

@@ -201,6 +201,28 @@ class MappingSettings:
         (seed 200, flight means) 1.0 -> 0.3: largest phantom patch 0.122 -> 0.109 m²,
         missing within 0.5 m 0.245 -> 0.246, mesh->truth 0.023 -> 0.022 m, touches flagged
         12 -> 13 of 568, gusts 114 of 117 both.
+    plane_guard_m : float
+        A plane point that another touch within this of it places outside its own surface (in
+        front of its tangent plane by more than 2 cm) is left out (``training._plane_keep``;
+        0: no touch cuts one off at an edge): the other face of an edge was touched. Any touch
+        counts, whatever solid it belongs to: a gust the detector believes, in the free space
+        in front of a touched face, loses the points that lie in front of that face too. At
+        0.8 or 1.0 m for every touch, a low box top cut a wall behind it short, and the tuning
+        flights (seeds 200-202) drew more phantom surface: flights with a largest patch over
+        0.1 m² 11 -> 12 of 36 gusty (both), missing by area 3.0 -> 3.9 / 4.2 %.
+    plane_guard_solid_m : float
+        ... and a touch within this farther reach cuts it off where the two touches are faces
+        of one solid (each on or behind the other's tangent plane; 0 or at most
+        ``plane_guard_m``: no farther reach). A pier deck's side touched 7 cm above its lower
+        edge put a plane point 13 cm below the deck, and the field sagged 0.2 m under it over
+        the 0.8 m between two pillars, in the controls too (0.07-0.17 m²); the underside
+        touched 0.7-0.9 m along says the side stops there. Tuning flights (seeds 200-202, 36
+        gusty flights and their 36 controls), 0.5 -> 1.0 m: flights with a largest patch over
+        0.1 m² 11 -> 7 of 36 gusty, 2 -> 0 of 36 controls (the worst control 0.174 -> 0.083
+        m²); phantom area 0.213 -> 0.143 m² (mean; controls 0.117 -> 0.046); touched surface
+        missing within 0.2 m by area 3.0 -> 2.8 % (controls 2.5 -> 2.0 %); gusts flagged 370
+        of 372 both, touches 14 -> 15 of 811. One simple yard flight drew a new 0.26 m² bulge in
+        front of a thin wall whose end face lost a plane point past its side.
     lone_reach_m : float
         An event no other event's contact lies within this of (its contacts' centroid) is
         *uncorroborated*, and decided on the ``mapper.lone_flag_p`` line instead of
@@ -386,6 +408,8 @@ class MappingSettings:
     plane_reach_m: float = 0.2
     plane_noise_per_m: float = 0.5
     plane_max_p_false: float = 0.3
+    plane_guard_m: float = 0.5
+    plane_guard_solid_m: float = 1.0
     lone_reach_m: float = 0.5
     model: Literal["robust", "gpis"] = "robust"
     lengthscale: float = 0.25
@@ -487,6 +511,8 @@ class MappingSettings:
             "settle_after_s",
             "settle_evidence_nats",
             "lone_reach_m",
+            "plane_guard_m",
+            "plane_guard_solid_m",
         ):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"mapping.{name} must be >= 0, got {getattr(self, name)!r}")

@@ -34,9 +34,10 @@
   join up instead of leaving holes between them, and dense ones (which need no help) draw no
   brims past edges. Only a touch whose prior ``P(false)`` is at most ``plane_max_p_false``
   gets them: the surface is carried on from touches the detector believes, not from a
-  coin-flip event amid free space. A plane point that another touch nearby places outside its
-  own surface (past an edge whose other face was touched), or that lies round a bend two
-  touches show (a pillar touched at two sides), is left out (``_plane_keep``).
+  coin-flip event amid free space. A plane point that another touch within ``plane_guard_m``
+  places outside its own surface (past an edge whose other face was touched), or a face of
+  the same solid within ``plane_guard_solid_m``, or that lies round a bend two touches show (a
+  pillar touched at two sides), is left out (``_plane_keep``).
 - **Groups.** The rows of one contact event form a group (contacts without an event id are
   grouped into runs no more than ``event_gap_s`` apart in time). Its prior ``P(false)`` is the
   detector's ``p_false`` (mean over its rows) where known, else ``prior_false``.
@@ -98,14 +99,16 @@ import numpy as np
 from groundstation.contact.detector import Observation
 from groundstation.mapping.mixture import Groups
 
-#: A plane point another touch within this many plane reaches of it places outside that
-#: touch's surface is dropped (``_plane_keep``) ...
+#: A touch within this many plane reaches of a plane point can show a bend there
+#: (``_plane_keep``); a sweep probe is past an edge a touch within this many disc radii of it
+#: shows (``_past_edge``; plane points: ``mapping.plane_guard_m``).
 PLANE_GUARD_REACHES = 2.5
-#: ... by more than this along the other touch's normal, metres (the detector's placement
-#: error is a few centimetres).
+#: A point lies outside a touch's surface when in front of its tangent plane by more than
+#: this, metres (the detector's placement error is a few centimetres).
 PLANE_BEYOND_TOL_M = 0.02
-#: ... or that lies ahead, behind this touch's tangent plane, with its normal turned towards
-#: the plane point by more than this sine (~17 deg, above the detector's normal error).
+#: A bend: the other touch lies ahead, behind this touch's tangent plane, with its normal
+#: turned towards the plane point by more than this sine (~17 deg, above the detector's
+#: normal error) ...
 PLANE_TURN_SIN = 0.3
 #: ... and sits where a circle through both touches would put it: behind / ahead (along the
 #: way the normal turns) within this factor of tan(turn / 2). The other face of a corner
@@ -150,6 +153,8 @@ class TrainingPolicy:
     plane_reach_m: float = 0.0
     plane_noise_per_m: float = 0.5
     plane_max_p_false: float = 1.0
+    plane_guard_m: float = 0.5
+    plane_guard_solid_m: float = 0.5
     settled_voxel_m: float = 0.1
     companion_s: float = 0.0
     lone_reach_m: float = 0.0
@@ -424,7 +429,7 @@ def build_training_set(
         keep = _plane_keep(
             np.array([g for g, _ in planar], dtype=np.int64),
             np.array([t for _, t in planar]).reshape(-1, 4, 3),
-            cen, nrm, rho,
+            cen, nrm, rho, p.plane_guard_m, p.plane_guard_solid_m,
         )  # fmt: skip
         kept = dict(zip([g for g, _ in planar], keep, strict=True))
         for g, a, b, on in todo:
@@ -510,21 +515,27 @@ def _centres_normals(
 
 
 def _plane_keep(
-    groups: np.ndarray, tangents: np.ndarray, cen: np.ndarray, nrm: np.ndarray, reach: float
-) -> np.ndarray:
+    groups: np.ndarray, tangents: np.ndarray, cen: np.ndarray, nrm: np.ndarray, reach: float,
+    guard_m: float, solid_m: float,
+) -> np.ndarray:  # fmt: skip
     """(m, k) bool: which plane points ``cen[groups[i]] + reach * tangents[i, j]`` are kept,
-    for every group at once (the touches within ``PLANE_GUARD_REACHES * reach`` of each point
-    found in one k-d tree query). A plane point is left out where the touches near it say the
-    surface does not go on flat to it:
+    for every group at once (the touches near each point found in one k-d tree query). A
+    plane point is left out where the touches near it say the surface does not go on flat
+    to it:
 
     - *past an edge*: another touch places the point outside its own surface (by more than
-      ``PLANE_BEYOND_TOL_M`` along its normal), the other face of a corner was touched;
-    - *round a bend*: another touch lies ahead along ``t``, behind this touch's tangent plane
-      (by more than ``PLANE_BEYOND_TOL_M``), with its normal turned towards ``t`` (by more
-      than ``PLANE_TURN_SIN``), where a circle through both touches would put it (within
-      ``PLANE_BEND_RATIO``): the surface curves away, as on a pillar touched at two sides.
-      A box touched on two faces equally far from their edge looks the same; there the
-      plane is left out too, and the GP's own smooth interpolation decides.
+      ``PLANE_BEYOND_TOL_M`` along its normal): any touch within ``guard_m`` (a believed gust
+      in front of a touched face loses its points in front of it), or within ``solid_m`` a
+      face of the same solid (each touch on or behind the other's tangent plane). A deck's
+      side touched 7 cm above its lower edge puts a plane point 13 cm below the deck; the
+      underside touched 0.8 m along says the side stops there;
+    - *round a bend*: another touch within ``PLANE_GUARD_REACHES * reach`` lies ahead along
+      ``t``, behind this touch's tangent plane (by more than ``PLANE_BEYOND_TOL_M``), with its
+      normal turned towards ``t`` (by more than ``PLANE_TURN_SIN``), where a circle through
+      both touches would put it (within ``PLANE_BEND_RATIO``): the surface curves away, as on
+      a pillar touched at two sides. A box touched on two faces equally far from their edge
+      looks the same; there the plane is left out too, and the GP's own smooth
+      interpolation decides.
     """
     m, k = tangents.shape[:2]
     keep = np.ones((m, k), dtype=bool)
@@ -533,9 +544,10 @@ def _plane_keep(
         return keep
     from scipy.spatial import cKDTree
 
+    bend_reach = PLANE_GUARD_REACHES * reach
     centre = cen[groups]  # (m, 3)
     Q = (centre[:, None, :] + reach * tangents).reshape(-1, 3)  # (m k, 3)
-    near = cKDTree(cen[valid]).query_ball_point(Q, PLANE_GUARD_REACHES * reach)
+    near = cKDTree(cen[valid]).query_ball_point(Q, max(guard_m, solid_m, bend_reach))
     counts = np.fromiter((len(x) for x in near), dtype=np.int64, count=len(near))
     qi = np.repeat(np.arange(Q.shape[0]), counts)
     j = valid[np.fromiter((v for x in near for v in x), dtype=np.int64, count=int(counts.sum()))]
@@ -545,9 +557,15 @@ def _plane_keep(
     t = tangents.reshape(-1, 3)[qi]
     n_g = nrm[groups[gi]]
     n_j = nrm[j]
+    dist = np.linalg.norm(Q[qi] - cen[j], axis=1)
     off = cen[j] - centre[gi]  # from the touch to its neighbour
-    past_edge = np.einsum("ij,ij->i", Q[qi] - cen[j], n_j) > PLANE_BEYOND_TOL_M
     behind = -np.einsum("ij,ij->i", off, n_g)  # h: how far behind the tangent plane
+    solid = (behind >= -PLANE_BEYOND_TOL_M) & (
+        np.einsum("ij,ij->i", -off, n_j) <= PLANE_BEYOND_TOL_M
+    )  # each touch on or behind the other's plane
+    past_edge = ((dist <= guard_m) | (solid & (dist <= solid_m))) & (
+        np.einsum("ij,ij->i", Q[qi] - cen[j], n_j) > PLANE_BEYOND_TOL_M
+    )
     cos = np.clip(np.einsum("ij,ij->i", n_j, n_g), -1.0, 1.0)
     turn = n_j - cos[:, None] * n_g  # the way the normal turns, in the plane
     turn /= np.maximum(np.linalg.norm(turn, axis=1, keepdims=True), 1e-12)
@@ -555,7 +573,8 @@ def _plane_keep(
     # on a circle through both touches h / s = tan(theta / 2), theta the normals' turn
     half = np.tan(np.arccos(cos) / 2)
     bend = (
-        (np.einsum("ij,ij->i", off, t) > 0)
+        (dist <= bend_reach)
+        & (np.einsum("ij,ij->i", off, t) > 0)
         & (behind > PLANE_BEYOND_TOL_M)
         & (np.einsum("ij,ij->i", n_j, t) > PLANE_TURN_SIN)
         & (behind < PLANE_BEND_RATIO * half * ahead)

@@ -561,12 +561,15 @@ def test_plane_points_of_many_touches_are_judged_as_each_alone():
         b = np.cross(nrm[groups], a)
         tangents = np.stack([a, -a, b, -b], axis=1)
         reach = float(rng.choice([0.1, 0.2]))
-        together = _plane_keep(groups, tangents, cen, nrm, reach)
+        guard, solid = rng.choice([0.0, 0.3, 0.8], 2).tolist()
+        together = _plane_keep(groups, tangents, cen, nrm, reach, guard, solid)
         assert together.shape == (groups.size, 4)
         for i, g in enumerate(groups):
-            alone = _plane_keep(groups[i : i + 1], tangents[i : i + 1], cen, nrm, reach)
+            alone = _plane_keep(
+                groups[i : i + 1], tangents[i : i + 1], cen, nrm, reach, guard, solid
+            )
             assert np.array_equal(alone[0], together[i]), g
-    none = _plane_keep(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 3)), cen, nrm, 0.2)
+    none = _plane_keep(np.zeros(0, dtype=np.int64), np.zeros((0, 4, 3)), cen, nrm, 0.2, 0.5, 0.5)
     assert none.shape == (0, 4)
 
 
@@ -659,6 +662,53 @@ def test_a_lone_touch_goes_on_as_plane_points_and_a_crowded_one_does_not():
     assert (rg == 0).sum() == 3 and (rg == 1).sum() == 3
     assert pillar.X[p][rg == 0][:, 1].min() == pytest.approx(0.0)  # none at y = -0.2 ...
     assert pillar.X[p][rg == 1][:, 0].min() == pytest.approx(0.0)  # ... nor at x = -0.2
+
+
+def test_a_plane_point_stops_where_a_touch_within_the_guards_says_the_surface_ends():
+    """``mapping.plane_guard_m`` and ``plane_guard_solid_m``: a wall touched 0.1 m above its
+    lower edge, whose underside (a face of the same solid) was touched 0.68 m from the wall's
+    lower plane point, loses that point once the solid's guard reaches so far. A box top 0.6 m
+    in front of the wall is no face of the wall's solid: it cuts the wall's points off only
+    within ``plane_guard_m`` (any touch), as the wall cuts the box's."""
+
+    def touch(i, at, normal):
+        at, normal = np.asarray(at, dtype=float), np.asarray(normal, dtype=float)
+        return [
+            Observation(2 * i, int(5e9 * i), at, 0.0, normal, i, 0.0, sigma_m=0.01),
+            Observation(2 * i + 1, int(5e9 * i), at - 0.1 * normal, -1.0, normal, i, 0.0,
+                        sigma_m=0.01),
+        ]  # fmt: skip
+
+    wall = touch(0, [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0])  # solid at x > 0
+    under = touch(1, [0.3, 0.6, 0.9], [0.0, 0.0, -1.0])  # its underside, z = 0.9
+    box = touch(2, [-0.6, 0.0, 0.9], [0.0, 0.0, 1.0])  # a box top in front of it, z = 0.9
+
+    def plane_points(guard, solid):
+        policy = TrainingPolicy(
+            tangent_slope_noise=1.0, plane_reach_m=0.2, plane_guard_m=guard,
+            plane_guard_solid_m=solid,
+        )  # fmt: skip
+        ts = build_training_set(wall + under + box, policy)
+        value = np.einsum("ij,ij->i", ts.directions, ts.directions) == 0.0
+        p = value & (ts.y == 0.0) & np.array([len(m) == 0 for m in ts.row_members])
+        return [ts.X[p][ts.groups.row_group[p] == g] for g in range(3)]
+
+    # both 0.5 m: the wall's four points lie 0.64-0.68 m from the others; the box's point
+    # 0.4 m in front of the wall lies outside the wall's surface, within reach
+    short = plane_points(0.5, 0.5)
+    assert [len(x) for x in short] == [4, 4, 3]
+    assert short[2][:, 0].max() == pytest.approx(-0.6)
+    # the solid's guard at 1 m: the wall stops at its underside, the box's top cuts nothing
+    solid = plane_points(0.5, 1.0)
+    assert [len(x) for x in solid] == [3, 4, 3]
+    assert solid[0][:, 2].min() == pytest.approx(1.0)  # nothing below the underside ...
+    assert solid[0][:, 2].max() == pytest.approx(1.2)  # ... the point above the box stays
+    # any touch's guard at 0.8 m: the box top cuts off the wall's points above z = 0.92 as
+    # well, and the wall all but the box's farthest
+    wide = plane_points(0.8, 0.8)
+    assert [len(x) for x in wide] == [0, 4, 1]
+    off = plane_points(0.0, 0.0)
+    assert [len(x) for x in off] == [4, 4, 4]
 
 
 def wavy_wall(seed=0, n=250):
