@@ -207,9 +207,10 @@ class MappingSettings:
         0: no touch cuts one off at an edge): the other face of an edge was touched. Any touch
         counts, whatever solid it belongs to: a gust the detector believes, in the free space
         in front of a touched face, loses the points that lie in front of that face too. At
-        0.8 or 1.0 m for every touch, a low box top cut a wall behind it short, and the tuning
-        flights (seeds 200-202) drew more phantom surface: flights with a largest patch over
-        0.1 m² 11 -> 12 of 36 gusty (both), missing by area 3.0 -> 3.9 / 4.2 %.
+        0.8 or 1.0 m for every touch (a low box top then cuts off a wall's points above it), the
+        tuning flights (seeds 200-202) lost more true surface and drew more phantom: flights
+        with a largest patch over 0.1 m² 11 -> 12 of 36 gusty (both), missing by area 3.0 ->
+        3.9 / 4.2 %.
     plane_guard_solid_m : float
         ... and a touch within this farther reach cuts it off where the two touches are faces
         of one solid (each on or behind the other's tangent plane; 0 or at most
