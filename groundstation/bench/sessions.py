@@ -37,7 +37,14 @@ from typing import Any
 
 from groundstation.bench.detector import FlightSpec, flight_suite
 from groundstation.pipeline.batch import Plan, Variant
-from groundstation.pipeline.pooling import TRUTH_METRICS, fmt, pool, u_auc
+from groundstation.pipeline.pooling import (
+    PATCH_LINE_M2,
+    TRUTH_METRICS,
+    fmt,
+    large_patches_text,
+    pool,
+    u_auc,
+)
 
 __all__ = ["BUNDLED", "ROOT", "Flight", "Variant", "control_of", "flights", "u_auc"]
 
@@ -171,6 +178,9 @@ def markdown(comparison: Mapping[str, Any], overrides: Mapping[str, Sequence[str
                 "events: touches detected": lambda p: _share(p, "detection_recall"),
                 "touched surface missing within 0.2 m, by area (m²)": lambda p: _share(
                     p, "missing_near_by_area", ".3f", ".2f"
+                ),
+                f"flights with a phantom patch over {PATCH_LINE_M2} m² (by cause)": lambda p: (
+                    large_patches_text(p["large_patches"])
                 ),
                 "u-AUC gust vs touch": lambda p: fmt(p["u_auc"], ".2f"),
                 "refit median (s)": lambda p: fmt(p["refit_s_median"], ".2f"),

@@ -11,6 +11,10 @@ events flagged among those whose contacts lie on the surface and among the mislo
 over the tasks (``missing_area_near_m2`` over ``touched_area_near_m2``, m²: the share of all
 the touched surface the maps lack, where the mean of ``missing_share_near`` weighs every
 flight alike).
+``large_patches``: the tasks whose largest phantom patch is over ``PATCH_LINE_M2`` (issue 13's
+line), of those that have one measured, and how many of them each cause drew
+(``phantom_max_patch_cause``, ``pipeline.scoring.patch_sources``; ``not recorded`` for reports
+written before it existed).
 ``u_auc``: probability that a gust event's median contact u exceeds a touch event's.
 ``refit_s_median``: median over every refit of every task. ``task_wall_s``: mean / median /
 max wall time of one task (replay + outputs).
@@ -195,6 +199,7 @@ def pool(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "failed": sum(r.get("status") == "failed" for r in records),
         "metrics": metrics,
         "shares": shares,
+        "large_patches": large_patches(reports),
         "u_auc": u_auc(
             [u for k, u in events if k == "gust"], [u for k, u in events if k != "gust"]
         ),
@@ -208,6 +213,28 @@ def pool(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "contacts": total("contacts"),
         "observations": total("observations"),
     }
+
+
+#: The largest phantom patch a flight may leave (m², issue 13's line).
+PATCH_LINE_M2 = 0.1
+
+
+def large_patches(reports: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Reports whose largest phantom patch is over :data:`PATCH_LINE_M2`, by what drew it."""
+    measured = [r for r in reports if _finite([r.get("phantom_max_patch_m2")])]
+    over = [r for r in measured if float(r["phantom_max_patch_m2"]) > PATCH_LINE_M2]
+    by_cause: dict[str, int] = {}
+    for r in over:
+        cause = r.get("phantom_max_patch_cause") or "not recorded"
+        by_cause[cause] = by_cause.get(cause, 0) + 1
+    return {"line_m2": PATCH_LINE_M2, "flights": len(measured), "over": len(over),
+            "by_cause": by_cause}  # fmt: skip
+
+
+def large_patches_text(p: Mapping[str, Any]) -> str:
+    """``4/36 (touches 3, false contact 1)``: the pooled :func:`large_patches` in a cell."""
+    causes = ", ".join(f"{c} {n}" for c, n in sorted(p["by_cause"].items(), key=lambda x: -x[1]))
+    return f"{p['over']}/{p['flights']}" + (f" ({causes})" if causes else "")
 
 
 def log_names(logs: Sequence[LogInput]) -> dict[str, str]:
@@ -307,6 +334,9 @@ def summary_markdown(summary: Mapping[str, Any], title: str = "groundstation bat
             row.append(f"{fmt(s['share'], '.2f')} ({fmt(s['num'], '.0f')}/{fmt(s['den'], '.0f')})")
         lines.append(f"| {key} | " + " | ".join(row) + " |")
     rows = {
+        f"flights with a phantom patch over {PATCH_LINE_M2} m² (by cause)": lambda p: (
+            large_patches_text(p["large_patches"])
+        ),
         "u-AUC gust vs touch": lambda p: fmt(p["u_auc"], ".2f"),
         "refit median (s)": lambda p: f"{fmt(p['refit_s_median'], '.2f')} ({p['refits']} refits)",
         "task wall mean / median / max (s)": lambda p: " / ".join(

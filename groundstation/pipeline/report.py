@@ -250,9 +250,13 @@ def truth_rows(report: Mapping[str, Any]) -> list[tuple[str, str]]:
             rows.append((label, _fmt(report[key])))
     for k, p in enumerate(report.get("phantom_patches") or [], start=1):
         centre = ", ".join(f"{x:.2f}" for x in p["centre"])
+        drawn = ""
+        if p.get("cause"):
+            ids = ", ".join(str(e["id"]) for e in p.get("events", []) if not e["flagged"])
+            drawn = f"; drawn by {p['cause']}" + (f" (events {ids})" if ids else "")
         rows.append((f"phantom patch {k}",
                      f"{_fmt(p['area_m2'])} m^2 at ({centre}), up to {_fmt(p['farthest_m'])} m "
-                     "from the truth"))  # fmt: skip
+                     f"from the truth{drawn}"))  # fmt: skip
     return rows
 
 

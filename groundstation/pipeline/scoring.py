@@ -40,7 +40,14 @@ Metrics (all distances in metres)
 ``phantom_patches``
     The three largest of those patches, largest first, each with its area, centre, bounding
     box and farthest distance to the truth (``mapping.metrics.PhantomPatch``): where the map
-    invents surface, to look at in the viewer.
+    invents surface, to look at in the viewer. Each also says what drew it
+    (:func:`patch_sources`): ``events``, the detected events with a contact point within
+    ``PATCH_REACH_M`` of its bounding box (id, truth kind, flagged), and ``cause``, from the
+    ones the map kept: ``false contact`` (a gust, a floor impact or a detector false alarm),
+    else ``touch placed off the surface`` (a true touch whose contacts lie more than 0.1 m from
+    any real surface), else ``touches`` (true touches on the surface: the shape the map drew
+    between or behind them), else ``no kept contact``. ``phantom_max_patch_cause`` is the
+    largest patch's cause (None without a patch).
 ``gust_events_flagged``, ``touch_events_flagged``
     Shares of detected events matched to truth gusts / touches that the map flags false.
 ``events_touch_mislocated``, ``touch_events_flagged_on_surface``, ``mislocated_touches_flagged``
@@ -80,6 +87,12 @@ from groundstation.mapping.surface import SurfaceMesh
 MATCH_BEFORE_S = 0.1
 MATCH_AFTER_S = 0.3
 PHANTOM_LISTED = 3  # largest phantom patches listed by where they lie
+#: A detected event drew a phantom patch when one of its contact points lies within this of
+#: the patch's bounding box: the patch is surface over 0.15 m from the truth, and the blob a
+#: contact draws reaches a length scale or two (0.2-0.5 m) from it.
+PATCH_REACH_M = 0.3
+#: What drew a patch, in the order :func:`patch_sources` decides it.
+PATCH_CAUSES = ("false contact", "touch placed off the surface", "touches", "no kept contact")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -162,6 +175,53 @@ def false_positive_scores(
         "truth_gusts": sum(c["kind"] == "gust" for c in truth.get("contacts", [])),
         "truth_touches": len(touches),
     }
+
+
+def patch_sources(
+    patches: Sequence[dict],
+    events: Sequence[DetectedEvent],
+    truth: dict,
+    *,
+    reach_m: float = PATCH_REACH_M,
+    mislocated_m: float = 0.1,
+) -> list[dict]:
+    """The ``phantom_patches`` dicts, each with ``events`` and ``cause`` (module docstring).
+
+    An event near a patch that the map flagged drew nothing (it is left out of the map), so it
+    is listed and does not decide the cause. A detected event matched to no truth contact is a
+    detector false alarm; one matched to a ``ground`` contact hit the floor, which is real
+    surface, so a patch beside it is a floor impact placed off the floor: both count as false
+    contacts here, as gusts do."""
+    m = match_events(events, truth)
+    placed = [e for e in events if e.points]
+    touch_kinds = ("touch", "slow_touch")
+    off = _mislocated(
+        [e for e in placed if m[e.id] is not None and m[e.id][1] in touch_kinds],
+        truth,
+        mislocated_m,
+    )
+    out = []
+    for p in patches:
+        lo, hi = np.asarray(p["lo"], dtype=np.float64), np.asarray(p["hi"], dtype=np.float64)
+        near = []
+        for e in placed:
+            pts = np.asarray(e.points, dtype=np.float64).reshape(-1, 3)
+            gap = np.maximum(np.maximum(lo - pts, pts - hi), 0.0)
+            if float(np.min(np.linalg.norm(gap, axis=1))) <= reach_m:
+                near.append(e)
+        kind = {e.id: (None if m[e.id] is None else m[e.id][1]) for e in near}
+        kept = [e for e in near if not e.flagged]
+        if any(kind[e.id] not in touch_kinds for e in kept):
+            cause = PATCH_CAUSES[0]
+        elif any(e.id in off for e in kept):
+            cause = PATCH_CAUSES[1]
+        elif kept:
+            cause = PATCH_CAUSES[2]
+        else:
+            cause = PATCH_CAUSES[3]
+        listed = [{"id": e.id, "kind": kind[e.id], "flagged": e.flagged} for e in near]
+        out.append({**p, "cause": cause, "events": listed})
+    return out
 
 
 def _mislocated(events: Sequence[DetectedEvent], truth: dict, limit_m: float) -> set[int]:
@@ -333,6 +393,11 @@ def score(
     """Every truth-based metric, or {} when the log has no truth."""
     if not truth or not truth.get("scene"):
         return {}
+    events = list(events)
     out = surface_scores(mesh, truth, touched_radius_m=touched_radius_m)
-    out.update(false_positive_scores(list(events), truth))
+    out.update(false_positive_scores(events, truth))
+    out["phantom_patches"] = patch_sources(out["phantom_patches"], events, truth)
+    out["phantom_max_patch_cause"] = (
+        out["phantom_patches"][0]["cause"] if out["phantom_patches"] else None
+    )
     return out

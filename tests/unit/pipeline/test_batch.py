@@ -18,6 +18,7 @@ from groundstation.pipeline.batch import (
 )
 from groundstation.pipeline.pooling import (
     TRUTH_METRICS,
+    large_patches_text,
     log_names,
     metric_stats,
     pool,
@@ -228,6 +229,23 @@ def test_pool_counts_slow_touch_flags_over_the_reports_that_have_them():
     assert (s["num"], s["den"], s["share"]) == (1, 4, 0.25)
 
 
+def test_pool_counts_the_flights_over_the_patch_line_by_cause():
+    largest = [(0.3, "touches"), (0.05, "touches"), (0.2, "false contact"), (0.15, "touches"),
+               (0.1, "touches"), (None, None), (0.4, None)]  # fmt: skip
+    reps = []
+    for area, cause in largest:
+        r = _record(0.1, 1, 1, 1)
+        r["report"].update(phantom_max_patch_m2=area, phantom_max_patch_cause=cause)
+        reps.append(r)
+    p = pool(reps)["large_patches"]
+    # 0.1 m² itself is on the line, not over it; a report without a mesh has no patch measured;
+    # one written before causes were recorded says so
+    assert (p["line_m2"], p["flights"], p["over"]) == (0.1, 6, 4)
+    assert p["by_cause"] == {"touches": 2, "false contact": 1, "not recorded": 1}
+    assert large_patches_text(p) == "4/6 (touches 2, false contact 1, not recorded 1)"
+    assert large_patches_text(pool(reps[1:2])["large_patches"]) == "0/1"
+
+
 def test_summary_lists_every_variant_log_and_failure():
     plan = plan_batch([A, B], [Variant("base"), Variant("low", ("contact.threshold_g=1.0",))],
                       resolve)  # fmt: skip
@@ -244,6 +262,7 @@ def test_summary_lists_every_variant_log_and_failure():
     assert [f["folder"] for f in s["failed"]] == [plan.tasks[0].folder]
     text = summary_markdown(s)
     assert "| chamfer_m | low |" in text and "truncated log" in text
+    assert "| flights with a phantom patch over 0.1 m² (by cause) | 0/0 | 0/0 |" in text
     assert "| a | base | failed |" in text
     assert text.count("(1.00, -2.50, 0.75)") == 1  # where that log's largest phantom patch is
 

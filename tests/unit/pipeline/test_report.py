@@ -31,3 +31,16 @@ def test_the_summary_shows_what_accuracy_costs_and_where_the_map_invents_surface
     assert rows["phantom patch 1"] == "0.3 m^2 at (4.20, -1.00, 0.80), up to 0.27 m from the truth"
     assert "gust events flagged" not in rows  # not in the report (no gusts): not invented
     assert truth_rows({"log": "x.mcap"}) == []  # no truth, no rows
+    # with what drew it: the kept events near it (a flagged one drew nothing)
+    report["phantom_patches"][0].update(
+        cause="false contact",
+        events=[
+            {"id": 3, "kind": "touch", "flagged": False},
+            {"id": 7, "kind": "gust", "flagged": False},
+            {"id": 8, "kind": "gust", "flagged": True},
+        ],
+    )
+    assert dict(truth_rows(report))["phantom patch 1"] == (
+        "0.3 m^2 at (4.20, -1.00, 0.80), up to 0.27 m from the truth; drawn by false contact "
+        "(events 3, 7)"
+    )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -148,3 +149,85 @@ def test_slow_touches_are_scored_apart_from_touches_and_gusts():
     assert s["fp_precision"] == 0.5  # the flagged slow touch is a wrong flag
     none = false_positive_scores(events[:1], truth)
     assert none["events_slow_touch"] == 0 and np.isnan(none["slow_touch_events_flagged"])
+
+
+def test_a_phantom_patch_names_the_kept_contacts_that_drew_it():
+    from groundstation.pipeline.scoring import DetectedEvent, patch_sources
+
+    # a wall x = 1 touched at t = 1 and 2, a gust at t = 3 and a floor impact at t = 4; one
+    # patch in front of the wall at x 0.75-0.85 (the blob a contact at x 0.7 would draw)
+    scene = {
+        "region": {"min": [-1, -2, 0], "max": [3, 2, 2]},
+        "objects": [{"type": "box", "min": [1.0, -2.0, 0.0], "max": [1.2, 2.0, 2.0]}],
+    }
+    truth = {
+        "scene": scene,
+        "contacts": [
+            {"kind": "touch", "start": 1.0, "end": 1.05, "point": [1.0, 0.0, 1.0]},
+            {"kind": "touch", "start": 2.0, "end": 2.05, "point": [1.0, 0.5, 1.0]},
+            {"kind": "gust", "start": 3.0, "end": 3.2},
+            {"kind": "ground", "start": 4.0, "end": 4.05, "point": [0.5, 0.0, 0.0]},
+        ],
+    }
+    patch = {"area_m2": 0.2, "centre": [0.8, 0.0, 1.0], "lo": [0.75, -0.2, 0.8],
+             "hi": [0.85, 0.2, 1.2], "farthest_m": 0.25}  # fmt: skip
+    on_wall = DetectedEvent(0, int(1e9), points=((1.0, 0.0, 1.0), (0.99, 0.05, 1.0)))
+    far_touch = DetectedEvent(1, int(2e9), points=((1.0, 1.5, 1.0),))  # 1.3 m from the patch
+    off_wall = DetectedEvent(1, int(2e9), points=((0.75, 0.1, 1.0),))  # placed 0.25 m off
+    gust = DetectedEvent(2, int(3e9), points=((0.7, 0.0, 1.0),))
+    floor = DetectedEvent(3, int(4e9), points=((0.6, 0.0, 0.6),))
+
+    def cause(*events):
+        (p,) = patch_sources([patch], list(events), truth)
+        assert {k: p[k] for k in patch} == patch  # the patch itself is kept as it was
+        return p["cause"], [(e["id"], e["kind"], e["flagged"]) for e in p["events"]]
+
+    assert cause(on_wall, far_touch) == ("touches", [(0, "touch", False)])
+    assert cause(on_wall, off_wall)[0] == "touch placed off the surface"
+    assert cause(on_wall, off_wall, gust) == (
+        "false contact",
+        [(0, "touch", False), (1, "touch", False), (2, "gust", False)],
+    )
+    # a flagged gust is left out of the map: listed, but it drew nothing
+    flagged = dataclasses.replace(gust, flagged=True)
+    assert cause(on_wall, flagged) == ("touches", [(0, "touch", False), (2, "gust", True)])
+    assert cause(flagged)[0] == "no kept contact"
+    assert cause(far_touch)[0] == "no kept contact"
+    # the floor is real surface: an impact drawn 0.6 m above it is a false contact here
+    assert cause(on_wall, floor)[0] == "false contact"
+    # a detected event no truth contact explains (a detector false alarm) too
+    stray = DetectedEvent(4, int(9e9), points=((0.5, 0.0, 1.0),))
+    assert cause(on_wall, stray) == ("false contact", [(0, "touch", False), (4, None, False)])
+
+
+def test_score_says_what_drew_the_largest_patch():
+    import numpy as np
+
+    from groundstation.mapping.surface import SurfaceMesh
+    from groundstation.pipeline.scoring import DetectedEvent, score
+
+    # a 1 m square 0.25 m in front of a wall touched at t = 1, where a gust's contact lies
+    scene = {
+        "region": {"min": [-1, -2, 0], "max": [3, 2, 2]},
+        "objects": [{"type": "box", "min": [1.0, -2.0, 0.0], "max": [1.2, 2.0, 2.0]}],
+    }
+    truth = {
+        "scene": scene,
+        "contacts": [
+            {"kind": "touch", "start": 1.0, "end": 1.05, "point": [1.0, 0.0, 1.0]},
+            {"kind": "gust", "start": 3.0, "end": 3.2},
+        ],
+    }
+    n = 11
+    yy, zz = np.meshgrid(np.linspace(-0.5, 0.5, n), np.linspace(0.5, 1.5, n))
+    v = np.column_stack([np.full(n * n, 0.75), yy.ravel(), zz.ravel()])
+    mesh = SurfaceMesh(v, _grid_faces(n), np.tile([-1.0, 0.0, 0.0], (n * n, 1)))
+    touch = DetectedEvent(0, int(1e9), points=((1.0, 0.0, 1.0),))
+    gust = DetectedEvent(1, int(3e9), points=((0.7, 0.0, 1.0),))
+    out = score(mesh, [touch, gust], truth)
+    assert out["phantom_max_patch_m2"] > 0.9
+    assert out["phantom_max_patch_cause"] == "false contact"
+    assert [e["id"] for e in out["phantom_patches"][0]["events"]] == [0, 1]
+    kept = score(mesh, [touch, dataclasses.replace(gust, flagged=True)], truth)
+    assert kept["phantom_max_patch_cause"] == "touches"  # the wall's touch 0.25 m behind it
+    assert score(None, [touch], truth)["phantom_max_patch_cause"] is None
