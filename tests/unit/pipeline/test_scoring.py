@@ -151,24 +151,30 @@ def test_slow_touches_are_scored_apart_from_touches_and_gusts():
     assert none["events_slow_touch"] == 0 and np.isnan(none["slow_touch_events_flagged"])
 
 
+def _wall_truth(*more):
+    """Truth of a wall at x = 1-1.2 m touched at (1, 0, 1) at t = 1 s, a gust at t = 3 s, and
+    ``more`` contacts, in start order."""
+    scene = {
+        "region": {"min": [-1, -2, 0], "max": [3, 2, 2]},
+        "objects": [{"type": "box", "min": [1.0, -2.0, 0.0], "max": [1.2, 2.0, 2.0]}],
+    }
+    contacts = [
+        {"kind": "touch", "start": 1.0, "end": 1.05, "point": [1.0, 0.0, 1.0]},
+        {"kind": "gust", "start": 3.0, "end": 3.2},
+        *more,
+    ]
+    return {"scene": scene, "contacts": sorted(contacts, key=lambda c: c["start"])}
+
+
 def test_a_phantom_patch_names_the_kept_contacts_that_drew_it():
     from groundstation.pipeline.scoring import DetectedEvent, patch_sources
 
     # a wall x = 1 touched at t = 1 and 2, a gust at t = 3 and a floor impact at t = 4; one
     # patch in front of the wall at x 0.75-0.85 (the blob a contact at x 0.7 would draw)
-    scene = {
-        "region": {"min": [-1, -2, 0], "max": [3, 2, 2]},
-        "objects": [{"type": "box", "min": [1.0, -2.0, 0.0], "max": [1.2, 2.0, 2.0]}],
-    }
-    truth = {
-        "scene": scene,
-        "contacts": [
-            {"kind": "touch", "start": 1.0, "end": 1.05, "point": [1.0, 0.0, 1.0]},
-            {"kind": "touch", "start": 2.0, "end": 2.05, "point": [1.0, 0.5, 1.0]},
-            {"kind": "gust", "start": 3.0, "end": 3.2},
-            {"kind": "ground", "start": 4.0, "end": 4.05, "point": [0.5, 0.0, 0.0]},
-        ],
-    }
+    truth = _wall_truth(
+        {"kind": "touch", "start": 2.0, "end": 2.05, "point": [1.0, 0.5, 1.0]},
+        {"kind": "ground", "start": 4.0, "end": 4.05, "point": [0.5, 0.0, 0.0]},
+    )
     patch = {"area_m2": 0.2, "centre": [0.8, 0.0, 1.0], "lo": [0.75, -0.2, 0.8],
              "hi": [0.85, 0.2, 1.2], "farthest_m": 0.25}  # fmt: skip
     on_wall = DetectedEvent(0, int(1e9), points=((1.0, 0.0, 1.0), (0.99, 0.05, 1.0)))
@@ -207,17 +213,7 @@ def test_score_says_what_drew_the_largest_patch():
     from groundstation.pipeline.scoring import DetectedEvent, score
 
     # a 1 m square 0.25 m in front of a wall touched at t = 1, where a gust's contact lies
-    scene = {
-        "region": {"min": [-1, -2, 0], "max": [3, 2, 2]},
-        "objects": [{"type": "box", "min": [1.0, -2.0, 0.0], "max": [1.2, 2.0, 2.0]}],
-    }
-    truth = {
-        "scene": scene,
-        "contacts": [
-            {"kind": "touch", "start": 1.0, "end": 1.05, "point": [1.0, 0.0, 1.0]},
-            {"kind": "gust", "start": 3.0, "end": 3.2},
-        ],
-    }
+    truth = _wall_truth()
     n = 11
     yy, zz = np.meshgrid(np.linspace(-0.5, 0.5, n), np.linspace(0.5, 1.5, n))
     v = np.column_stack([np.full(n * n, 0.75), yy.ravel(), zz.ravel()])
