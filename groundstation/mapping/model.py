@@ -16,6 +16,8 @@ sequence of named policy steps:
 5. :meth:`~SurfaceModel.settle`: events trusted for ``settle_after_s`` are settled, their rows
    pooled per voxel from the next fit on (rows then grow with the area touched, not with the
    time spent touching it);
+6. :meth:`~SurfaceModel.open_space`: the offset added to the field wherever it is evaluated,
+   never to the fit (``mapping/openspace.py``; off unless ``mapping.open_offset``);
 
 and :meth:`SurfaceModel.mesh` evaluates the field in a narrow band around its zero set on a grid
 over the *data's* region (:meth:`~SurfaceModel.region`: every observation plus a margin, clipped
@@ -43,6 +45,7 @@ from groundstation.mapping.cavities import cavity_faces
 from groundstation.mapping.field import narrow_band_field
 from groundstation.mapping.grid import Grid
 from groundstation.mapping.mixture import EventMixtureGPIS, Groups, KernelBounds, MixtureFit
+from groundstation.mapping.openspace import OpenSpaceOffset
 from groundstation.mapping.settings import MappingSettings, SurfaceSettings
 from groundstation.mapping.surface import (
     SurfaceMesh,
@@ -206,6 +209,7 @@ class SurfaceModel:
         self._tiles: dict[tuple, _TileFit] = {}
         self._layout = TileLayout(mapping.tile_m, 0.0)
         self._settled: set[tuple] = set()
+        self.offset_ = OpenSpaceOffset.none()
 
     # ------------------------------------------------------------------ policy steps
 
@@ -221,6 +225,22 @@ class SurfaceModel:
         vouch = self.warm_start(ts) <= self.decide_p  # not believed false: may corroborate
         line = np.where(ts.uncorroborated(vouch), self.lone_decide_p, self.decide_p)
         return dataclasses.replace(ts, groups=dataclasses.replace(ts.groups, decide_p=line))
+
+    def open_space(self, ts: TrainingSet) -> OpenSpaceOffset:
+        """Step 6: the open-space offset the field is evaluated with (``mapping/openspace.py``),
+        from every contact and plane point (whatever the fit decided of its event) and the
+        touches' normals. It never enters the fit."""
+        ms = self.mapping
+        if ms.open_offset == 0.0:
+            return OpenSpaceOffset.none()
+        value = np.einsum("ij,ij->i", ts.directions, ts.directions) == 0.0
+        surface = value & (ts.y == 0.0)
+        touch = surface & (np.einsum("ij,ij->i", ts.normals, ts.normals) > 0.0)
+        return OpenSpaceOffset(
+            ms.open_offset, ms.open_start_m, ms.open_end_m, ts.X[surface],
+            ts.X[touch], ts.normals[touch], reach_m=ms.open_reach_m, front_m=ms.open_front_m,
+            inside_m=self.policy.internal_depth_m, free=ts.X[ts.y > 0.0],
+        )  # fmt: skip
 
     def learn_kernel_now(self, ts: TrainingSet) -> bool:
         """Step 2: learn the kernel until it has been learnt once (:meth:`estimate` decides
@@ -431,6 +451,7 @@ class SurfaceModel:
         if learnt:
             self._n_theta = len(ts)
         self.training_set_ = ts
+        self.offset_ = self.open_space(ts)
         self.posterior_false_ = post
         self.decided_false_ = post > ts.groups.lines(self.decide_p)
         self._posterior_by_event = {ts.keys[g]: float(p) for g, p in enumerate(post)}
@@ -552,10 +573,11 @@ class SurfaceModel:
 
     def predict(self, Xq: np.ndarray, return_std: bool = False):
         """Posterior mean (and latent std) at ``Xq`` (m, d), metres, from each point's tile
-        (the prior where no tile was fitted)."""
+        (the prior where no tile was fitted), plus the open-space offset (0 unless
+        ``mapping.open_offset``): the field whose zero set the mesh draws."""
         self._check()
         Xq = np.asarray(Xq, dtype=np.float64)
-        mean = np.full(Xq.shape[0], self.mapping.prior_mean)
+        mean = self.mapping.prior_mean + self.offset_(Xq)
         std = np.full(Xq.shape[0], math.sqrt(self.signal_var_))
         keys = self._layout.keys(Xq)
         with blas_threads(self.mapping.blas_threads):
@@ -568,6 +590,7 @@ class SurfaceModel:
                     mean[sel], std[sel] = out
                 else:
                     mean[sel] = out
+                mean[sel] += self.offset_(Xq[sel])
         return (mean, std) if return_std else mean
 
     # ------------------------------------------------------------------ region, field, mesh
@@ -655,8 +678,11 @@ class SurfaceModel:
             d, _ = tree.query(q, distance_upper_bound=r)
             return np.isfinite(d)
 
+        def field(q: np.ndarray) -> np.ndarray:
+            return tile.est.predict(q) + self.offset_(q)
+
         band = narrow_band_field(
-            tile.est.predict, grid, coarse_factor=self.surface.coarse_factor,
+            field, grid, coarse_factor=self.surface.coarse_factor,
             band_voxels=self.surface.band_voxels, active=active,
         )  # fmt: skip
         mesh = extract_surface(band.values, band.grid)
@@ -684,9 +710,11 @@ class SurfaceModel:
         s = self.spacing_m()
         with blas_threads(self.mapping.blas_threads):
             for tile in self._tiles.values():
-                if tile.mesh is None or tile.mesh_key != s:
+                # the offset near the tile is part of what its mesh was drawn from
+                key = (s, signature(self.offset_.digest_near(*self._layout.core(tile.key))))
+                if tile.mesh is None or tile.mesh_key != key:
                     tile.mesh = self._tile_mesh(tile, s)
-                    tile.mesh_key = s
+                    tile.mesh_key = key
         parts = [t.mesh for t in self._tiles.values() if not t.mesh.is_empty]
         mesh = weld_lattice(_concatenate(parts), s)  # neighbours share their boundary plane
         if self.surface.drop_cavities and not mesh.is_empty:
@@ -716,7 +744,7 @@ class _TileFit:
     signature: str
     est: EventMixtureGPIS
     mesh: SurfaceMesh | None
-    mesh_key: float | None = None
+    mesh_key: tuple | None = None  # (grid spacing, digest of the open-space offset near it)
 
     def __post_init__(self) -> None:
         self.local = {int(g): k for k, g in enumerate(self.gidx.tolist())}

@@ -267,6 +267,27 @@ class MappingSettings:
         phantom 0.31 / 0.23 / 0.15 / 0.10 m^2, missing within 0.5 m 0.30 / 0.31 / 0.32 / 0.35);
         0.3 has the lowest Chamfer (0.072 / 0.069 / 0.068 / 0.069 m). The legacy engine's
         comparisons pin mu0 to 0.
+    open_offset : float
+        The open-space offset's full value (label units; 0: none): added to the field wherever
+        it is evaluated (never to the fit), 0 within ``open_start_m`` of every row the data show
+        to be surface (contacts and plane points, whatever the fit decides of their events),
+        the full value from ``open_end_m`` on, but only in front of the touches near a point
+        (``mapping/openspace.py``). A touched face then stops near its touches instead of
+        carrying on a length scale past them: a pier deck touched at mid-height on its side
+        was drawn 0.13-0.26 m above its top along that edge. Tuning flights (seeds 200-202,
+        36 gusty flights and their 36 controls), 0 -> 0.5 / 0.7: touched surface missing within
+        0.2 m by area 2.8 -> 1.8 / 1.7 % (MuJoCo 4.3 -> 3.4 / 3.3 %; controls 2.0 -> 1.0 /
+        1.0 %), largest phantom patch 0.080 / 0.042 / 0.585 -> 0.076 / 0.029 / 0.543 (0.7:
+        0.075 / 0.023 / 0.529) m² (mean / median / worst), phantom area 0.127 -> 0.102 / 0.100 m²
+        (controls 0.038 -> 0.027 both), flights over 0.1 m² 7 -> 7 / 8 (controls 0 -> 0 / 1),
+        Chamfer near touches 42.8 -> 40.7 / 40.6 mm, mesh->truth median 19.0 -> 19.7 / 20.1 mm;
+        every flag the same (the fit does not see it).
+    open_start_m, open_end_m : float
+        Where the offset rises with the distance to the nearest surface row, metres.
+    open_reach_m, open_front_m : float
+        The touches within ``open_reach_m`` decide whether a point is in front of the data
+        (the full offset ``open_front_m`` in front of one's tangent plane; none within reach:
+        open space); behind all of them a point is inside a structure and has none.
     optimize : bool
         Learn the kernel hyperparameters (M-step) or keep them at their initial values.
     noise_update : "direct" | "em"
@@ -419,6 +440,11 @@ class MappingSettings:
     beta: float = 4.0
     noise_var: float = 0.01
     prior_mean: float = 0.3
+    open_offset: float = 0.5
+    open_start_m: float = 0.1
+    open_end_m: float = 0.3
+    open_reach_m: float = 0.8
+    open_front_m: float = 0.1
     optimize: bool = True
     noise_update: Literal["direct", "em"] = "direct"
     max_iter: int = 200
@@ -517,6 +543,16 @@ class MappingSettings:
         ):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"mapping.{name} must be >= 0, got {getattr(self, name)!r}")
+        if not 0.0 <= self.open_start_m < self.open_end_m:
+            raise ValueError(
+                "mapping.open_start_m and open_end_m must satisfy 0 <= start < end, "
+                f"got {self.open_start_m!r}, {self.open_end_m!r}"
+            )
+        if not (self.open_offset >= 0 and self.open_reach_m > 0 and self.open_front_m > 0):
+            raise ValueError(
+                "mapping.open_offset must be >= 0 and open_reach_m, open_front_m > 0, got "
+                f"{self.open_offset!r}, {self.open_reach_m!r}, {self.open_front_m!r}"
+            )
         if not -1.0 <= self.inside_value < 0.0:
             raise ValueError(f"mapping.inside_value must be in [-1, 0), got {self.inside_value!r}")
         if not self.lengthscale_min < 100.0:
