@@ -17,7 +17,7 @@ sequence of named policy steps:
    pooled per voxel from the next fit on (rows then grow with the area touched, not with the
    time spent touching it);
 6. :meth:`~SurfaceModel.open_space`: the offset added to the field wherever it is evaluated,
-   never to the fit (``mapping/openspace.py``; off unless ``mapping.open_offset``);
+   never to the fit (``mapping/openspace.py``, ``mapping.open_offset``; 0: none);
 
 and :meth:`SurfaceModel.mesh` evaluates the field in a narrow band around its zero set on a grid
 over the *data's* region (:meth:`~SurfaceModel.region`: every observation plus a margin, clipped
@@ -573,8 +573,8 @@ class SurfaceModel:
 
     def predict(self, Xq: np.ndarray, return_std: bool = False):
         """Posterior mean (and latent std) at ``Xq`` (m, d), metres, from each point's tile
-        (the prior where no tile was fitted), plus the open-space offset (0 unless
-        ``mapping.open_offset``): the field whose zero set the mesh draws."""
+        (the prior where no tile was fitted), plus the open-space offset
+        (``mapping.open_offset``): the field whose zero set the mesh draws."""
         self._check()
         Xq = np.asarray(Xq, dtype=np.float64)
         mean = self.mapping.prior_mean + self.offset_(Xq)
@@ -710,7 +710,8 @@ class SurfaceModel:
         s = self.spacing_m()
         with blas_threads(self.mapping.blas_threads):
             for tile in self._tiles.values():
-                # the offset near the tile is part of what its mesh was drawn from
+                # the offset near the tile is part of what its mesh was drawn from (its free
+                # samples only through the tile's rows: a new one within the halo refits it)
                 key = (s, signature(self.offset_.digest_near(*self._layout.core(tile.key))))
                 if tile.mesh is None or tile.mesh_key != key:
                     tile.mesh = self._tile_mesh(tile, s)
