@@ -287,7 +287,8 @@ class MappingSettings:
     open_reach_m, open_front_m : float
         The touches within ``open_reach_m`` decide whether a point is in front of the data
         (the full offset ``open_front_m`` in front of one's tangent plane; none within reach:
-        open space); behind all of them a point is inside a structure and has none.
+        open space); behind all of them a point is inside a structure and has none, and so is
+        one deeper than ``d_in`` behind the nearest touch that no free-space sample is nearer to.
     optimize : bool
         Learn the kernel hyperparameters (M-step) or keep them at their initial values.
     noise_update : "direct" | "em"

@@ -110,24 +110,26 @@ def _edge_top(model: SurfaceModel) -> float:
     return float(np.median(tops))
 
 
-def test_a_deck_touched_on_its_side_is_not_drawn_above_its_top_with_the_offset():
+@pytest.fixture(scope="module")
+def deck_maps():
+    """The deck flight, fitted without the offset and with the default one."""
     obs = _deck_flight()
-    flat = SurfaceModel(NONE, SurfaceSettings())
-    opened = SurfaceModel(OPEN, SurfaceSettings())
-    flat.fit(obs, learn_kernel=True)
-    opened.fit(obs, learn_kernel=True)
+    maps = [SurfaceModel(s, SurfaceSettings()) for s in (NONE, OPEN)]
+    for m in maps:
+        m.fit(obs, learn_kernel=True)
+    return obs, *maps
+
+
+def test_a_deck_touched_on_its_side_is_not_drawn_above_its_top_with_the_offset(deck_maps):
+    _, flat, opened = deck_maps
     assert _edge_top(flat) > 1.27  # the side face carried on up past the edge
     assert _edge_top(opened) < _edge_top(flat) - 0.03
     inside = np.array([[x, y, 1.1] for x in (1.0, 2.0) for y in (0.1, 0.5, 0.8)])
     assert np.all(opened.predict(inside) < -0.1)  # the deck is still a solid
 
 
-def test_the_offset_leaves_the_fit_and_the_field_at_the_touches_as_they_were():
-    obs = _deck_flight()
-    a = SurfaceModel(NONE, SurfaceSettings())
-    b = SurfaceModel(OPEN, SurfaceSettings())
-    a.fit(obs, learn_kernel=True)
-    b.fit(obs, learn_kernel=True)
+def test_the_offset_leaves_the_fit_and_the_field_at_the_touches_as_they_were(deck_maps):
+    obs, a, b = deck_maps
     assert a.lengthscale_ == b.lengthscale_ and a.signal_var_ == b.signal_var_
     np.testing.assert_array_equal(a.posterior_false_, b.posterior_false_)
     C = np.array([o.position for o in obs if o.label == 0.0])
