@@ -239,7 +239,7 @@ class SurfaceModel:
         return OpenSpaceOffset(
             ms.open_offset, ms.open_start_m, ms.open_end_m, ts.X[surface],
             ts.X[touch], ts.normals[touch], reach_m=ms.open_reach_m, front_m=ms.open_front_m,
-            inside_m=self.policy.internal_depth_m, free=ts.X[ts.y > 0.0],
+            inside_m=self.policy.internal_depth_m, free=ts.X[ts.y > 0.0], solid=ms.open_solid,
         )  # fmt: skip
 
     def learn_kernel_now(self, ts: TrainingSet) -> bool:

@@ -28,6 +28,13 @@ than ``inside_m`` behind the touch nearest to it when no free-space sample (a pl
 was) lies nearer to it than that touch (the offset fades out by ``2 inside_m``): the inside of a
 box next to a wall touched on its far side, in front of the wall's touches. Behind a thin wall
 touched on one side the vehicle flew, and the bulge drawn there keeps its offset.
+
+Past an edge of a convex solid that fade does not apply (``solid``): a point deep behind the
+nearest touch but in front of another face of its solid (a touch within reach, each of the two
+on or behind the other's tangent plane, as in ``mapping.training``'s plane guard) is outside
+that solid. Above a pier deck's edge, behind the touched side but over the touched top, the
+side face was otherwise carried up until the nearest touch changed to a top one. The inside of
+a box next to a wall fails the test (the wall's touch is in front of the box's face).
 """
 
 from __future__ import annotations
@@ -37,6 +44,9 @@ from scipy.spatial import cKDTree
 
 #: Touches the front test looks at (the nearest ones within ``reach_m``).
 FRONT_NEIGHBOURS = 16
+#: Two touches may be faces of one solid when each lies on or behind the other's tangent
+#: plane within this (``mapping.training.PLANE_BEYOND_TOL_M``).
+SOLID_TOL_M = 0.02
 
 
 class OpenSpaceOffset:
@@ -60,6 +70,8 @@ class OpenSpaceOffset:
         where no free-space sample is nearer than that touch.
     free : (f, d) float64, optional
         Free-space samples (None: none).
+    solid : bool
+        Cancel the fade in front of another face of the nearest touch's solid.
     """
 
     def __init__(
@@ -74,6 +86,7 @@ class OpenSpaceOffset:
         front_m: float = 0.1,
         inside_m: float = 0.1,
         free: np.ndarray | None = None,
+        solid: bool = False,
     ) -> None:
         if not 0.0 <= start_m < end_m:
             raise ValueError(f"need 0 <= start_m < end_m, got {start_m!r}, {end_m!r}")
@@ -87,6 +100,7 @@ class OpenSpaceOffset:
         self.reach_m = float(reach_m)
         self.front_m = float(front_m)
         self.inside_m = float(inside_m)
+        self.solid = bool(solid)
         self.anchors = np.asarray(anchors, dtype=np.float64)
         none = self.offset == 0.0 or self.anchors.shape[0] == 0
         self._tree = None if none else cKDTree(self.anchors)
@@ -130,10 +144,20 @@ class OpenSpaceOffset:
         d, j = d.reshape(len(X), k), j.reshape(len(X), k)
         found = np.isfinite(d)
         jj = np.where(found, j, 0)
-        front = np.einsum("mkd,mkd->mk", X[:, None, :] - tree.data[jj], n[jj])
-        depth = -front[:, 0]  # behind the nearest touch (the query sorts by distance)
-        front = np.where(found, front, -np.inf).max(axis=1)
+        front_k = np.einsum("mkd,mkd->mk", X[:, None, :] - tree.data[jj], n[jj])
+        depth = -front_k[:, 0]  # behind the nearest touch (the query sorts by distance)
+        front = np.where(found, front_k, -np.inf).max(axis=1)
         inside = _step((depth - self.inside_m) / self.inside_m)
+        if self.solid and k > 1:  # ... unless it is in front of another face of that solid
+            p0, n0 = tree.data[jj[:, :1]], n[jj[:, :1]]
+            pk, nk = tree.data[jj], n[jj]
+            one = (np.einsum("mkd,mkd->mk", p0 - pk, nk) <= SOLID_TOL_M) & (
+                np.einsum("mkd,mkd->mk", pk - p0, n0) <= SOLID_TOL_M
+            )
+            one &= found & found[:, :1]
+            one[:, 0] = False
+            past = np.where(one, _step(np.where(found, front_k, 0.0) / self.front_m), 0.0)
+            inside *= 1.0 - past.max(axis=1)
         if self._free is not None:  # ... unless the vehicle was nearer than that touch
             d_free, _ = self._free.query(X, distance_upper_bound=self.reach_m)
             inside *= _step((np.minimum(d_free, self.reach_m) - d[:, 0]) / self.inside_m)

@@ -289,6 +289,11 @@ class MappingSettings:
         (the full offset ``open_front_m`` in front of one's tangent plane; none within reach:
         open space); behind all of them a point is inside a structure and has none, and so is
         one deeper than ``d_in`` behind the nearest touch that no free-space sample is nearer to.
+    open_solid : bool
+        ... except where the point lies in front of another face of that touch's solid (a touch
+        within reach, each of the two on or behind the other's tangent plane): past an edge of
+        a convex solid, such as the top of a pier deck above its touched side, is open space.
+        Tuning numbers: README "Open space".
     optimize : bool
         Learn the kernel hyperparameters (M-step) or keep them at their initial values.
     noise_update : "direct" | "em"
@@ -446,6 +451,7 @@ class MappingSettings:
     open_end_m: float = 0.3
     open_reach_m: float = 0.8
     open_front_m: float = 0.1
+    open_solid: bool = True
     optimize: bool = True
     noise_update: Literal["direct", "em"] = "direct"
     max_iter: int = 200

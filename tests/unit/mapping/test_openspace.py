@@ -75,6 +75,23 @@ def test_deep_behind_the_nearest_touch_is_inside_unless_the_vehicle_was_nearer()
     flown = OpenSpaceOffset(0.7, 0.1, 0.2, faces, faces, normals, inside_m=0.1,
                             free=np.array([[0.0, 0.55, 0.5]]))  # fmt: skip
     assert flown(p)[0] == pytest.approx(0.7)  # the vehicle was there: it is open space
+    solid = OpenSpaceOffset(0.7, 0.1, 0.2, faces, faces, normals, inside_m=0.1, solid=True)
+    assert solid(p)[0] == pytest.approx(0.0)  # the wall's face is not one of the box's
+
+
+def test_past_an_edge_of_one_solid_is_open_space_however_deep_behind_the_nearest_touch():
+    # a deck touched on its side (y = 0, normal -y) at mid-height and on its top (z = 1.2) 0.6 m
+    # in: 0.15 m over the top and 0.25 m in from the side, the point is deeper behind the side
+    # touch (its nearest) than 2 d_in, and in front of the top touch, a face of the same solid
+    faces = np.array([[0.0, 0.0, 1.1], [0.0, 0.6, 1.2]])
+    normals = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0]])
+    p = np.array([[0.0, 0.25, 1.35]])
+    kw = dict(reach_m=0.8, front_m=0.1, inside_m=0.1)
+    assert OpenSpaceOffset(0.7, 0.1, 0.3, faces, faces, normals, **kw)(p)[0] == 0.0
+    past = OpenSpaceOffset(0.7, 0.1, 0.3, faces, faces, normals, solid=True, **kw)
+    assert past(p)[0] == pytest.approx(0.7)
+    under = np.array([[0.0, 0.25, 1.05]])  # inside the deck: behind both faces
+    assert past(under)[0] == pytest.approx(0.0)
 
 
 def _deck_flight():
@@ -97,6 +114,7 @@ def _deck_flight():
 
 
 NONE, OPEN = MappingSettings(open_offset=0.0), MappingSettings()  # the default: 0.5
+NO_SOLID = MappingSettings(open_solid=False)
 
 
 def _edge_top(model: SurfaceModel) -> float:
@@ -112,16 +130,17 @@ def _edge_top(model: SurfaceModel) -> float:
 
 @pytest.fixture(scope="module")
 def deck_maps():
-    """The deck flight, fitted without the offset and with the default one."""
+    """The deck flight, fitted without the offset, with the default one, and with it fading
+    behind the nearest touch past an edge too."""
     obs = _deck_flight()
-    maps = [SurfaceModel(s, SurfaceSettings()) for s in (NONE, OPEN)]
+    maps = [SurfaceModel(s, SurfaceSettings()) for s in (NONE, OPEN, NO_SOLID)]
     for m in maps:
         m.fit(obs, learn_kernel=True)
     return obs, *maps
 
 
 def test_a_deck_touched_on_its_side_is_not_drawn_above_its_top_with_the_offset(deck_maps):
-    _, flat, opened = deck_maps
+    _, flat, opened, _ = deck_maps
     assert _edge_top(flat) > 1.27  # the side face carried on up past the edge
     assert _edge_top(opened) < _edge_top(flat) - 0.03
     inside = np.array([[x, y, 1.1] for x in (1.0, 2.0) for y in (0.1, 0.5, 0.8)])
@@ -129,7 +148,7 @@ def test_a_deck_touched_on_its_side_is_not_drawn_above_its_top_with_the_offset(d
 
 
 def test_the_offset_leaves_the_fit_and_the_field_at_the_touches_as_they_were(deck_maps):
-    obs, a, b = deck_maps
+    obs, a, b, _ = deck_maps
     assert a.lengthscale_ == b.lengthscale_ and a.signal_var_ == b.signal_var_
     np.testing.assert_array_equal(a.posterior_false_, b.posterior_false_)
     C = np.array([o.position for o in obs if o.label == 0.0])
@@ -138,3 +157,9 @@ def test_the_offset_leaves_the_fit_and_the_field_at_the_touches_as_they_were(dec
     assert b.predict(far)[0] == pytest.approx(a.predict(far)[0] + OPEN.open_offset)
     high = [float(np.mean(m.mesh().vertices[:, 2] > 1.28)) for m in (a, b)]
     assert high[1] < 0.5 * high[0]  # less drawn above the deck's top (1.2) past the data
+
+
+def test_past_the_deck_edge_the_offset_holds_deeper_than_d_in_behind_the_side(deck_maps):
+    _, _, opened, faded = deck_maps
+    high = [float(np.mean(m.mesh().vertices[:, 2] > 1.28)) for m in (faded, opened)]
+    assert high[1] < 0.5 * high[0]  # 0.25 m in from the side the top was still drawn high
