@@ -24,7 +24,9 @@ Accuracy that comes from smoothing rather than from rejecting false contacts sho
 gap to the control; a robust map is as good in gusty air as in calm air (ratio ~1 for errors).
 Event shares are pooled over flights (``pipeline.pooling.pool``), and so is the touched
 surface missing within 0.2 m of a touch, by area (``missing_near_by_area``): the mean of
-``missing_share_near`` weighs a flight with one touch as much as one with fifty.
+``missing_share_near`` weighs a flight with one touch as much as one with fifty. Next to it,
+the same near the touches the detector reported (``missing_near_detected_by_area``): the rest
+was never given to the map.
 """
 
 from __future__ import annotations
@@ -178,6 +180,9 @@ def markdown(comparison: Mapping[str, Any], overrides: Mapping[str, Sequence[str
                 "events: touches detected": lambda p: _share(p, "detection_recall"),
                 "touched surface missing within 0.2 m, by area (m²)": lambda p: _share(
                     p, "missing_near_by_area", ".3f", ".2f"
+                ),
+                "... near the touches the detector reported (m²)": lambda p: _share(
+                    p, "missing_near_detected_by_area", ".3f", ".2f"
                 ),
                 f"flights with a phantom patch over {PATCH_LINE_M2} m² (by cause)": lambda p: (
                     large_patches_text(p["large_patches"])

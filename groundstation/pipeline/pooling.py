@@ -10,7 +10,8 @@ events flagged among those whose contacts lie on the surface and among the mislo
 ``missing_near_by_area``: the touched surface missing within 0.2 m of a touch, pooled by area
 over the tasks (``missing_area_near_m2`` over ``touched_area_near_m2``, m²: the share of all
 the touched surface the maps lack, where the mean of ``missing_share_near`` weighs every
-flight alike).
+flight alike); ``missing_near_detected_by_area``: the same near the touches the detector
+reported (``missing_area_near_detected_m2`` over ``touched_area_near_detected_m2``).
 ``large_patches``: the tasks whose largest phantom patch is over ``PATCH_LINE_M2`` (issue 13's
 line), of those that have one measured, and how many of them each cause drew
 (``phantom_max_patch_cause``, ``pipeline.scoring.patch_sources``; ``not recorded`` for reports
@@ -38,6 +39,7 @@ TRUTH_METRICS: dict[str, str] = {
     "truth_to_mesh_median_m": "low",
     "missing_share": "low",
     "missing_share_near": "low",
+    "missing_share_near_detected": "low",
     "phantom_area_m2": "low",
     "phantom_max_patch_m2": "low",
     "gust_events_flagged": "high",
@@ -189,6 +191,9 @@ def pool(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             total("detection_recall", "truth_touches"), total("truth_touches")
         ),
         "missing_near_by_area": by_area("missing_area_near_m2", "touched_area_near_m2"),
+        "missing_near_detected_by_area": by_area(
+            "missing_area_near_detected_m2", "touched_area_near_detected_m2"
+        ),
     }
     events = [tuple(e) for x in extras for e in x.get("event_u", [])]
     refits = _finite(t for x in extras for t in x.get("refit_s", []))

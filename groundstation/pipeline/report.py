@@ -234,6 +234,7 @@ def truth_rows(report: Mapping[str, Any]) -> list[tuple[str, str]]:
         ("missing_share", "touched surface missing (within 0.5 m of a touch)"),
         ("missing_share_near", "touched surface missing (within 0.2 m)"),
         ("touched_area_near_m2", "touched surface within 0.2 m of a touch (m^2)"),
+        ("missing_share_near_detected", "... missing, near the touches the detector reported"),
         ("phantom_area_m2", "phantom surface (m^2)"),
         ("shape_error_m", "shape error (m)"),
         ("gust_events_flagged", "gust events flagged"),

@@ -32,6 +32,14 @@ Metrics (all distances in metres)
     of all the touched surface of many flights that is missing (``pipeline.pooling``): the
     mean of ``missing_share_near`` over flights weighs a flight with one touch as much as one
     with fifty.
+``missing_share_near_detected``, ``touched_area_near_detected_m2``,
+``missing_area_near_detected_m2``
+    The same three over the surface within ``near_radius_m`` of the true touches the detector
+    reported (a detected event matched to the touch, flagged or not): what the map lost of
+    what it was told. The rest of ``missing_area_near_m2`` lies near touches no detected
+    event matched (a touch inside another's event, a vehicle lying against a structure after
+    a crash), which no map can draw. On a flight with one or two touches one such miss is
+    most of ``missing_share_near``. NaN when no detected event matched a touch.
 ``phantom_area_m2``, ``phantom_max_patch_m2``
     Mesh faces farther than ``phantom_m`` (0.15 m) from the true surface, joined into patches
     by shared vertices: their total area and the largest patch's (surface the map invents).
@@ -224,6 +232,19 @@ def patch_sources(
     return out
 
 
+def reported_touches(events: Sequence[DetectedEvent], truth: dict) -> np.ndarray:
+    """(k, 3) contact points of the true touches (kinds touch/slow_touch) that a detected event
+    matched (:func:`match_events`)."""
+    contacts = truth.get("contacts", [])
+    hit = sorted({v[0] for v in match_events(events, truth).values() if v is not None})
+    pts = [
+        contacts[k]["point"]
+        for k in hit
+        if contacts[k]["kind"] in ("touch", "slow_touch") and contacts[k].get("point") is not None
+    ]
+    return np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+
+
 def _mislocated(events: Sequence[DetectedEvent], truth: dict, limit_m: float) -> set[int]:
     """Ids of ``events`` whose contact points lie (median) farther than ``limit_m`` from any
     real surface; none without a scene or without points."""
@@ -284,10 +305,13 @@ def surface_scores(
     seed: int = 0,
     missing_m: float = 0.1,
     phantom_m: float = 0.15,
+    detected: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """The surface metrics of the module docstring (floats, and ``phantom_patches``); NaN when
     there is no mesh, and then ``missing_share`` 1 (all the touched surface is missing) or NaN
-    when nothing was touched (a contact-free flight has no surface to miss)."""
+    when nothing was touched (a contact-free flight has no surface to miss). ``detected``:
+    (k, 3) contact points of the true touches the detector reported (None: none)."""
+    reported = np.zeros((0, 3)) if detected is None else np.asarray(detected, float).reshape(-1, 3)
     nan: dict[str, Any] = {
         k: math.nan
         for k in (
@@ -305,6 +329,12 @@ def surface_scores(
     )  # fmt: skip
     nan["touched_area_near_m2"] = touched_near
     nan["missing_area_near_m2"] = touched_near if len(touched_points(truth)) else math.nan
+    told_near = (
+        math.nan if scene is None else touched_area(scene, reported, near_radius_m, seed=seed)
+    )
+    nan["missing_share_near_detected"] = 1.0 if len(reported) else math.nan
+    nan["touched_area_near_detected_m2"] = told_near
+    nan["missing_area_near_detected_m2"] = told_near if len(reported) else math.nan
     if mesh is None or mesh.is_empty or scene is None:
         return nan
     rng = np.random.default_rng(seed)
@@ -332,8 +362,10 @@ def surface_scores(
         t2m, missing = float(np.median(d_b)), float(np.mean(d_b > missing_m))
         near = _near(b, touched, near_radius_m)
         missing_near = float(np.mean(d_b[near] > missing_m)) if near.any() else math.nan
+        told = _near(b, reported, near_radius_m)
+        missing_told = float(np.mean(d_b[told] > missing_m)) if told.any() else math.nan
     else:
-        t2m, missing, missing_near = math.nan, math.nan, math.nan
+        t2m, missing, missing_near, missing_told = math.nan, math.nan, math.nan, math.nan
     patches = phantom_patches(
         mesh.vertices, mesh.faces, lambda p: distance_to_world(scene, p), threshold=phantom_m
     )
@@ -347,6 +379,9 @@ def surface_scores(
         "missing_share_near": missing_near,
         "touched_area_near_m2": touched_near,
         "missing_area_near_m2": missing_near * touched_near,
+        "missing_share_near_detected": missing_told,
+        "touched_area_near_detected_m2": told_near,
+        "missing_area_near_detected_m2": missing_told * told_near,
         "phantom_area_m2": float(sum(p.area_m2 for p in patches)),
         "phantom_max_patch_m2": patches[0].area_m2 if patches else 0.0,
         "phantom_patches": [p.as_dict() for p in patches[:PHANTOM_LISTED]],
@@ -394,7 +429,9 @@ def score(
     if not truth or not truth.get("scene"):
         return {}
     events = list(events)
-    out = surface_scores(mesh, truth, touched_radius_m=touched_radius_m)
+    out = surface_scores(
+        mesh, truth, touched_radius_m=touched_radius_m, detected=reported_touches(events, truth)
+    )
     out.update(false_positive_scores(events, truth))
     out["phantom_patches"] = patch_sources(out["phantom_patches"], events, truth)
     out["phantom_max_patch_cause"] = (

@@ -64,6 +64,43 @@ def test_near_missing_counts_only_the_surface_around_the_touches():
     assert math.isnan(untouched["missing_area_near_m2"])
 
 
+def test_the_surface_near_touches_the_detector_missed_is_counted_apart():
+    import numpy as np
+
+    from groundstation.mapping.surface import SurfaceMesh
+    from groundstation.pipeline.scoring import DetectedEvent, reported_touches, score
+
+    # a wall x = 1 touched at y = 0 (reported by an event) and at y = 1.5 (no event: the
+    # detector missed it); the map drew a 0.5 m square round the first only
+    scene = {
+        "region": {"min": [-1, -2, 0], "max": [3, 2, 2]},
+        "objects": [{"type": "box", "min": [1.0, -2.0, 0.0], "max": [1.2, 2.0, 2.0]}],
+    }
+    truth = {
+        "scene": scene,
+        "contacts": [
+            {"kind": "touch", "start": 1.0, "end": 1.05, "point": [1.0, 0.0, 1.0]},
+            {"kind": "touch", "start": 9.0, "end": 9.05, "point": [1.0, 1.5, 1.0]},
+        ],
+    }
+    events = [DetectedEvent(0, int(1e9), points=((1.0, 0.0, 1.0),))]
+    np.testing.assert_allclose(reported_touches(events, truth), [[1.0, 0.0, 1.0]])
+    n = 11
+    yy, zz = np.meshgrid(np.linspace(-0.25, 0.25, n), np.linspace(0.75, 1.25, n))
+    v = np.column_stack([np.ones(n * n), yy.ravel(), zz.ravel()])
+    mesh = SurfaceMesh(v, _grid_faces(n), np.tile([-1.0, 0.0, 0.0], (n * n, 1)))
+    s = score(mesh, events, truth)
+    assert s["missing_share_near"] == pytest.approx(0.5, abs=0.05)  # the missed touch's disc
+    assert s["missing_share_near_detected"] < 0.02  # what the map was told, it drew
+    assert s["touched_area_near_detected_m2"] == pytest.approx(math.pi * 0.2**2, rel=0.1)
+    assert s["missing_area_near_detected_m2"] < 0.01 * s["touched_area_near_detected_m2"] + 1e-9
+    none = score(None, [], truth)  # no event: nothing was reported, nothing to judge the map on
+    assert math.isnan(none["missing_share_near_detected"])
+    assert none["touched_area_near_detected_m2"] == 0.0
+    bare = score(None, events, truth)  # reported and not drawn: all of it missing
+    assert bare["missing_share_near_detected"] == 1.0
+
+
 def test_a_mesh_on_the_floor_is_real_surface_and_one_below_it_is_phantom():
     import numpy as np
 
