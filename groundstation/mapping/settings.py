@@ -293,7 +293,8 @@ class MappingSettings:
         ... except where the point lies in front of another face of that touch's solid (a touch
         within reach, each of the two on or behind the other's tangent plane): past an edge of
         a convex solid, such as the top of a pier deck above its touched side, is open space.
-        Tuning numbers: README "Open space".
+        Tuning flights (seeds 200-202): missing by area 1.80 -> 1.76 %, largest patch mean
+        0.076 -> 0.073 m², Chamfer 40.7 -> 40.2 mm, flags identical (README, "past an edge").
     optimize : bool
         Learn the kernel hyperparameters (M-step) or keep them at their initial values.
     noise_update : "direct" | "em"
