@@ -37,9 +37,10 @@ Metrics (all distances in metres)
     The same three over the surface within ``near_radius_m`` of the true touches the detector
     reported (a detected event matched to the touch, flagged or not): what the map lost of
     what it was told. The rest of ``missing_area_near_m2`` lies near touches no detected
-    event matched (a touch inside another's event, a vehicle lying against a structure after
-    a crash), which no map can draw. On a flight with one or two touches one such miss is
-    most of ``missing_share_near``. NaN when no detected event matched a touch.
+    event matched (a slow touch the detector missed, a touch inside another's event, a vehicle
+    lying against a structure after a crash), which no map can draw. On a flight with one or
+    two touches one such miss is most of ``missing_share_near``. NaN when no detected event
+    matched a touch.
 ``phantom_area_m2``, ``phantom_max_patch_m2``
     Mesh faces farther than ``phantom_m`` (0.15 m) from the true surface, joined into patches
     by shared vertices: their total area and the largest patch's (surface the map invents).
