@@ -31,10 +31,10 @@ touched on one side the vehicle flew, and the bulge drawn there keeps its offset
 
 Past an edge of a convex solid that fade does not apply (``solid``): a point deep behind the
 nearest touch but in front of another face of its solid (a touch within reach, each of the two
-on or behind the other's tangent plane, as in ``mapping.training``'s plane guard) is outside
-that solid: over a pier deck's edge, deeper behind the touched side than d_in but above the
-touched top, and behind a thin wall touched on both faces. Without it the side face was
-carried on up there (on the unit tests' deck 4.4 % of the mesh lay over 8 cm above the top,
+on or behind the other's tangent plane: ``mapping.training.one_solid``, the plane guard's test)
+is outside that solid: over a pier deck's edge, deeper behind the touched side than d_in but
+above the touched top, and behind a thin wall touched on both faces. Without it the side face
+was carried on up there (on the unit tests' deck 4.4 % of the mesh lay over 8 cm above the top,
 none with it). The inside of a box next to a wall fails the test (the wall's touch is in front
 of the box's face) and keeps no offset.
 """
@@ -44,11 +44,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from groundstation.mapping.training import one_solid
+
 #: Touches the front test looks at (the nearest ones within ``reach_m``).
 FRONT_NEIGHBOURS = 16
-#: Two touches may be faces of one solid when each lies on or behind the other's tangent
-#: plane within this (``mapping.training.PLANE_BEYOND_TOL_M``).
-SOLID_TOL_M = 0.02
 
 
 class OpenSpaceOffset:
@@ -151,12 +150,9 @@ class OpenSpaceOffset:
         front = np.where(found, front_k, -np.inf).max(axis=1)
         inside = _step((depth - self.inside_m) / self.inside_m)
         if self.solid and k > 1:  # ... unless it is in front of another face of that solid
-            p0, n0 = tree.data[jj[:, :1]], n[jj[:, :1]]
-            pk, nk = tree.data[jj], n[jj]
-            one = (np.einsum("mkd,mkd->mk", p0 - pk, nk) <= SOLID_TOL_M) & (
-                np.einsum("mkd,mkd->mk", pk - p0, n0) <= SOLID_TOL_M
-            )
-            one &= found & found[:, :1]
+            near = np.repeat(jj[:, :1], k, axis=1).ravel()
+            one = one_solid(tree.data[near], n[near], tree.data[jj.ravel()], n[jj.ravel()])
+            one = one.reshape(jj.shape) & found & found[:, :1]
             one[:, 0] = False
             past = np.where(one, _step(np.where(found, front_k, 0.0) / self.front_m), 0.0)
             inside *= 1.0 - past.max(axis=1)

@@ -560,7 +560,7 @@ def _plane_keep(
     dist = np.linalg.norm(Q[qi] - cen[j], axis=1)
     off = cen[j] - centre[gi]  # from the touch to its neighbour
     behind = -np.einsum("ij,ij->i", off, n_g)  # h: how far behind the tangent plane
-    solid = _one_solid(centre[gi], n_g, cen[j], n_j)
+    solid = one_solid(centre[gi], n_g, cen[j], n_j)
     past_edge = ((dist <= guard_m) | (solid & (dist <= solid_m))) & (
         np.einsum("ij,ij->i", Q[qi] - cen[j], n_j) > PLANE_BEYOND_TOL_M
     )
@@ -741,12 +741,12 @@ def _past_edge(
     g = owner[i]
     beyond = np.einsum("ij,ij->i", pts[i] - centres[j], normals[j]) > PLANE_BEYOND_TOL_M
     # a gust in the free space in front of a touched wall is not behind that wall
-    pair = _one_solid(centres[g], normals[g], centres[j], normals[j])
+    pair = one_solid(centres[g], normals[g], centres[j], normals[j])
     out[i[beyond & pair & (j != g)]] = True
     return out
 
 
-def _one_solid(a: np.ndarray, na: np.ndarray, b: np.ndarray, nb: np.ndarray) -> np.ndarray:
+def one_solid(a: np.ndarray, na: np.ndarray, b: np.ndarray, nb: np.ndarray) -> np.ndarray:
     """(k,) bool: touches ``a[k]`` and ``b[k]`` (outward normals ``na``, ``nb``) may be faces
     of one solid: each lies on or behind the other's tangent plane (within
     ``PLANE_BEYOND_TOL_M``)."""
