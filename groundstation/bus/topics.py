@@ -213,12 +213,14 @@ _TABLE = [
     _t("contact.event", "contact_event", 1, "detector", "lossless", "event",
        {"id": Field("int"), "state": Field("str", choices=("begin", "end", "rejected")),
         "peak_g": Field("float"), "p_false": Field("float", optional=True),
+        "p_false_impulse": Field("float", optional=True),
         "dv_mps": Field("float", optional=True), "rebound": Field("bool", optional=True),
         "features": Field("dict", optional=True)},
        {"position_m": _VEC3, "normal": _VEC3},
        "A contact began or ended: drone position (m, world) at its onset, outward unit normal, "
        "peak in G. The impulse detector sends begin and end together once it has decided, "
-       "with p_false (probability from the physics that the event is not a contact), dv_mps "
+       "with p_false (probability from the physics that the event is not a contact; "
+       "p_false_impulse: from its own impulse, without the burst context), dv_mps "
        "(impulse per unit mass along the normal), rebound and the named evidence features; "
        "state 'rejected': a candidate too likely false to make observations."),
     _t("observations", "observation", 2, "detector", "lossless", "data",

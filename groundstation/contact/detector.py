@@ -98,7 +98,9 @@ class ContactEvent:
     """One detected contact (threshold: crossing to release; impulse: onset to release).
 
     ``p_false``, ``features`` (:class:`~groundstation.contact.evidence.ImpulseFeatures`) and
-    ``rejected`` (too likely false to make observations) come from the impulse detector.
+    ``rejected`` (too likely false to make observations) come from the impulse detector;
+    ``p_false_impulse`` is the evidence model's value on the impulse alone (``p_false`` adds
+    the burst context, ``contact.burst_odds``).
     """
 
     id: int
@@ -111,6 +113,7 @@ class ContactEvent:
     p_false: float = math.nan
     features: object = None
     rejected: bool = False
+    p_false_impulse: float = math.nan
 
 
 @dataclasses.dataclass

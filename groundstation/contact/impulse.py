@@ -31,7 +31,10 @@ tilts it on oblique touches), its onset found by walking back from the peak to 1
 once ``evidence_window_s`` more of data has arrived the evidence of
 :mod:`groundstation.contact.evidence` is measured (duration, impulse, mocap approach and rebound
 speeds, their agreement with the IMU, how fast the vehicle was turning before the onset) and
-:class:`~groundstation.contact.evidence.EvidenceModel` turns it into ``p_false``.
+:class:`~groundstation.contact.evidence.EvidenceModel` turns it into ``p_false``. Gusts come in
+bursts: a candidate that follows, within ``burst_window_s``, one the model put at
+``reject_p_false`` or more on its own impulse has its odds multiplied by ``burst_odds``
+(``p_false_impulse`` keeps the model's value on the impulse alone).
 
 Observations
 ------------
@@ -154,6 +157,15 @@ class _Closed:
     need_ns: int  # data time needed for the evidence
 
 
+def burst_raised(p: float, odds: float) -> float:
+    """``p`` with its odds multiplied by ``odds`` (``contact.burst_odds``): a candidate in a
+    burst after a clearly false one."""
+    if not p < 1.0:
+        return p
+    o = p / (1.0 - p) * odds
+    return o / (1.0 + o)
+
+
 class ImpulseDetector:
     """Streaming impulse detector (see the module docstring).
 
@@ -205,6 +217,7 @@ class ImpulseDetector:
         self._refractory_until = -(2**62)
         self._refractory_peak = math.inf  # peak score of the impulse that set the refractory
         self._last_event_end = -(2**62)
+        self._last_false_on = -(2**62)  # onset of the last candidate the model alone rejects
         self._last_external_t = -(2**62)
         self._last_external_pos: list[float] | None = None
         self._quiet_ns = int(s.quiet_s * 1e9)
@@ -532,7 +545,12 @@ class ImpulseDetector:
             agreement=(approach + rebound) / cl.dv_imu if cl.dv_imu > 1e-6 else math.nan,
             turn_rate_radps=turn_rate,
         )
-        p_false = self.model.p_false(feats)
+        p_impulse = self.model.p_false(feats)
+        p_false = p_impulse
+        if s.burst_odds > 1 and t_on - self._last_false_on <= int(s.burst_window_s * 1e9):
+            p_false = burst_raised(p_impulse, s.burst_odds)
+        if p_impulse >= s.reject_p_false:
+            self._last_false_on = t_on
         rejected = not p_false < s.reject_p_false
         close_row = cl.rows[1] - c.base
         event = ContactEvent(
@@ -545,6 +563,7 @@ class ImpulseDetector:
             p_false=p_false,
             features=feats,
             rejected=rejected,
+            p_false_impulse=p_impulse,
         )
         self._next_event_id += 1
         self.events.append(event)

@@ -167,6 +167,7 @@ def event_payload(ev: ContactEvent, state: str) -> dict:
         f = ev.features
         payload.update(
             p_false=float(ev.p_false),
+            p_false_impulse=float(ev.p_false_impulse),
             dv_mps=float(f.dv_imu_mps),
             rebound=bool(f.rebound),
             features=f.as_dict(),
