@@ -24,7 +24,7 @@ from groundstation.contact.evidence import (
     model_inputs,
     n_terms,
 )
-from groundstation.contact.impulse import ImpulseDetector
+from groundstation.contact.impulse import ImpulseDetector, burst_raised
 from groundstation.contact.settings import ContactSettings, G
 from groundstation.contact.vehicle import VehicleSettings, contact_offset
 from groundstation.errors import ConfigError
@@ -438,3 +438,55 @@ def test_a_push_stops_making_contacts_once_the_vehicle_moves_out_along_its_norma
 def test_a_negative_normal_reach_is_refused():
     with pytest.raises(ValueError, match="sustain_normal_m"):
         ContactSettings(sustain_normal_m=-0.1)
+
+
+def _by_duration(coef=4.0, intercept=-14.5):
+    """A model that reads only the duration: a 0.2 s push ~0.99 false, a touch ~0.1."""
+    block = Logistic(("log_duration_ms",), (0.0,), (1.0,), (coef,), intercept)
+    return EvidenceModel(block, block, "test")
+
+
+GUST = (0.0, 1.0, 0.0)
+
+
+@pytest.mark.parametrize(
+    "gap_s, odds, raised",
+    [(1.0, 4.0, True), (2.5, 4.0, False), (1.0, 1.0, False)],
+)
+def test_a_touch_soon_after_a_clearly_false_candidate_has_its_odds_raised(gap_s, odds, raised):
+    t_touch = 2.5 + 0.2 + gap_s  # the gust's onset is at 2.5 s, the window counts onsets
+    hit = touch(t0=t_touch, speed=0.5)
+    data = flight(duration=8.0, impulses=[(2.5, 0.2, 1.5, GUST), *hit["impulses"]], v0=hit["v0"])
+    settings = ContactSettings(burst_window_s=2.0, burst_odds=odds)
+    det, _ = run(data, settings=settings, model=_by_duration())
+    gust, contact = det.events
+    assert gust.rejected and gust.p_false_impulse >= settings.reject_p_false
+    assert 0.02 < contact.p_false_impulse < 0.5
+    expected = burst_raised(contact.p_false_impulse, odds) if raised else contact.p_false_impulse
+    assert contact.p_false == pytest.approx(expected)
+    assert (contact.p_false > contact.p_false_impulse) == raised
+
+
+def test_the_burst_context_is_the_earlier_impulse_alone_not_a_chain():
+    # gust at 2.5 s, a touch 1.2 s later (raised), then the rebound carries the vehicle into
+    # the opposite wall 1.5 s after that: within 2 s of the first touch, 2.7 s after the gust;
+    # the first touch was not false on its own impulse, so the second keeps its p_false
+    a = touch(t0=3.7, speed=0.5)
+    data = flight(duration=9.0, impulses=[(2.5, 0.2, 1.5, GUST), *a["impulses"],
+                                          (5.2, 0.022, 0.7, -WALL)], v0=a["v0"])  # fmt: skip
+    det, _ = run(data, settings=ContactSettings(burst_window_s=2.0, burst_odds=4.0),
+                 model=_by_duration())  # fmt: skip
+    assert len(det.events) == 3 and det.events[0].rejected
+    first, second = det.events[1], det.events[2]
+    assert first.p_false > first.p_false_impulse
+    assert second.p_false == pytest.approx(second.p_false_impulse)
+
+
+def test_burst_odds_arithmetic_and_settings():
+    assert burst_raised(0.2, 4.0) == pytest.approx(0.5)
+    assert burst_raised(0.0, 4.0) == 0.0 and burst_raised(1.0, 4.0) == 1.0
+    assert burst_raised(0.3, 1.0) == pytest.approx(0.3)
+    with pytest.raises(ValueError, match="burst_odds"):
+        ContactSettings(burst_odds=0.5)
+    with pytest.raises(ValueError, match="burst_window_s"):
+        ContactSettings(burst_window_s=-1.0)
