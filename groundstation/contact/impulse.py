@@ -33,7 +33,9 @@ once ``evidence_window_s`` more of data has arrived the evidence of
 speeds, their agreement with the IMU, how fast the vehicle was turning before the onset) and
 :class:`~groundstation.contact.evidence.EvidenceModel` turns it into ``p_false``. Gusts come in
 bursts: a candidate that follows, within ``burst_window_s``, one the model put at
-``reject_p_false`` or more on its own impulse has its odds multiplied by ``burst_odds``
+``reject_p_false`` or more on its own impulse *and pushed the same way* (impulse directions
+less than 90 degrees apart; a gust that throws the drone into a structure is followed by an
+impact pushing back) has its odds multiplied by ``burst_odds``
 (``p_false_impulse`` keeps the model's value on the impulse alone).
 
 Observations
@@ -217,7 +219,8 @@ class ImpulseDetector:
         self._refractory_until = -(2**62)
         self._refractory_peak = math.inf  # peak score of the impulse that set the refractory
         self._last_event_end = -(2**62)
-        self._last_false_on = -(2**62)  # onset of the last candidate the model alone rejects
+        #: (onset ns, world impulse direction) of recent candidates the model alone rejects
+        self._false_pushes: list[tuple[int, np.ndarray]] = []
         self._last_external_t = -(2**62)
         self._last_external_pos: list[float] | None = None
         self._quiet_ns = int(s.quiet_s * 1e9)
@@ -547,10 +550,12 @@ class ImpulseDetector:
         )
         p_impulse = self.model.p_false(feats)
         p_false = p_impulse
-        if s.burst_odds > 1 and t_on - self._last_false_on <= int(s.burst_window_s * 1e9):
+        window = int(s.burst_window_s * 1e9)
+        self._false_pushes = [(t, d) for t, d in self._false_pushes if t_on - t <= window]
+        if s.burst_odds > 1 and any(float(d @ n) > 0.0 for _, d in self._false_pushes):
             p_false = burst_raised(p_impulse, s.burst_odds)
         if p_impulse >= s.reject_p_false:
-            self._last_false_on = t_on
+            self._false_pushes.append((t_on, n))
         rejected = not p_false < s.reject_p_false
         close_row = cl.rows[1] - c.base
         event = ContactEvent(

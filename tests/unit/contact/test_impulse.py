@@ -446,17 +446,21 @@ def _by_duration(coef=4.0, intercept=-14.5):
     return EvidenceModel(block, block, "test")
 
 
-GUST = (0.0, 1.0, 0.0)
-
-
 @pytest.mark.parametrize(
-    "gap_s, odds, raised",
-    [(1.0, 4.0, True), (2.5, 4.0, False), (1.0, 1.0, False)],
+    "gap_s, push, odds, raised",
+    [
+        (1.0, WALL, 4.0, True),  # pushed the same way again: a burst
+        (1.0, -WALL, 4.0, False),  # a gust threw it at the wall, the wall pushed back: a touch
+        (2.5, WALL, 4.0, False),  # past the window
+        (1.0, WALL, 1.0, False),  # off
+    ],
 )
-def test_a_touch_soon_after_a_clearly_false_candidate_has_its_odds_raised(gap_s, odds, raised):
-    t_touch = 2.5 + 0.2 + gap_s  # the gust's onset is at 2.5 s, the window counts onsets
-    hit = touch(t0=t_touch, speed=0.5)
-    data = flight(duration=8.0, impulses=[(2.5, 0.2, 1.5, GUST), *hit["impulses"]], v0=hit["v0"])
+def test_a_candidate_pushed_the_same_way_soon_after_a_clearly_false_one_is_doubted(
+    gap_s, push, odds, raised
+):
+    t_next = 2.5 + 0.2 + gap_s  # the gust's onset is at 2.5 s, the window counts onsets
+    hit = touch(t0=t_next, speed=0.5)
+    data = flight(duration=8.0, impulses=[(2.5, 0.2, 1.5, push), *hit["impulses"]], v0=hit["v0"])
     settings = ContactSettings(burst_window_s=2.0, burst_odds=odds)
     det, _ = run(data, settings=settings, model=_by_duration())
     gust, contact = det.events
@@ -468,12 +472,12 @@ def test_a_touch_soon_after_a_clearly_false_candidate_has_its_odds_raised(gap_s,
 
 
 def test_the_burst_context_is_the_earlier_impulse_alone_not_a_chain():
-    # gust at 2.5 s, a touch 1.2 s later (raised), then the rebound carries the vehicle into
-    # the opposite wall 1.5 s after that: within 2 s of the first touch, 2.7 s after the gust;
-    # the first touch was not false on its own impulse, so the second keeps its p_false
+    # a gust at 2.5 s, a candidate pushed the same way 1.2 s later (raised), another 1.5 s after
+    # that, the same way again: within 2 s of the second, 2.7 s after the gust. The second was
+    # not false on its own impulse, so the third keeps its p_false.
     a = touch(t0=3.7, speed=0.5)
-    data = flight(duration=9.0, impulses=[(2.5, 0.2, 1.5, GUST), *a["impulses"],
-                                          (5.2, 0.022, 0.7, -WALL)], v0=a["v0"])  # fmt: skip
+    data = flight(duration=9.0, impulses=[(2.5, 0.2, 1.5, WALL), *a["impulses"],
+                                          (5.2, 0.022, 0.7, WALL)], v0=a["v0"])  # fmt: skip
     det, _ = run(data, settings=ContactSettings(burst_window_s=2.0, burst_odds=4.0),
                  model=_by_duration())  # fmt: skip
     assert len(det.events) == 3 and det.events[0].rejected
