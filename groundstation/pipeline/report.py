@@ -52,6 +52,7 @@ class EventRow:
     p_false: float | None
     state: str  # trusted | flagged | awaiting | pending
     truth: str | None  # touch | gust | ... | "unmatched" | None (no truth)
+    p_false_impulse: float | None = None  # the detector's value on the impulse alone
 
 
 def event_rows(result, truth: Mapping[str, Any] | None) -> list[EventRow]:
@@ -87,6 +88,7 @@ def event_rows(result, truth: Mapping[str, Any] | None) -> list[EventRow]:
         e = ends.get(ev_id)
         last = e if e is not None else b
         p = last.payload.get("p_false", b.payload.get("p_false"))
+        p_alone = last.payload.get("p_false_impulse", b.payload.get("p_false_impulse"))
         if p is None and obs_p.get(ev_id):
             p = float(np.mean(obs_p[ev_id]))
         if ev_id in points:
@@ -113,9 +115,23 @@ def event_rows(result, truth: Mapping[str, Any] | None) -> list[EventRow]:
                 p_false=None if p is None else float(p),
                 state=state,
                 truth=label,
+                p_false_impulse=None if p_alone is None else float(p_alone),
             )
         )
     return rows
+
+
+def p_false_cell(r: EventRow) -> str:
+    """The event table's ``p_false``: with the impulse's own value when a gust burst raised it
+    (``contact.burst_odds``), so a doubted touch says why."""
+    text = _fmt(r.p_false, 2)
+    if r.p_false is not None and r.p_false_impulse is not None:
+        if r.p_false - r.p_false_impulse > 0.005:
+            text += (
+                f" ({r.p_false_impulse:.2f} on its own; a dropped impulse pushed the same way"
+                " just before)"
+            )
+    return text
 
 
 def _png(fig: Any) -> str:
@@ -345,7 +361,7 @@ def render_html(
             f"<td class='l'>{place}</td><td>{r.peak_g:.2f}</td>",
         ]
         if has_p_false:
-            cells.append(f"<td>{_fmt(r.p_false, 2)}</td>")
+            cells.append(f"<td>{html.escape(p_false_cell(r))}</td>")
         cells.append(f"<td class='l {r.state}'>{r.state}</td>")
         if has_truth:
             cells.append(f"<td class='l {esc(r.truth or '')}'>{esc(r.truth or '–')}</td>")

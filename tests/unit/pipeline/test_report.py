@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from groundstation.pipeline.report import truth_rows
+from groundstation.pipeline.report import EventRow, p_false_cell, truth_rows
 
 
 def test_the_summary_shows_what_accuracy_costs_and_where_the_map_invents_surface():
@@ -44,3 +44,12 @@ def test_the_summary_shows_what_accuracy_costs_and_where_the_map_invents_surface
         "0.3 m^2 at (4.20, -1.00, 0.80), up to 0.27 m from the truth; drawn by false contact "
         "(events 3, 7)"
     )
+
+
+def test_a_p_false_raised_by_a_gust_burst_shows_the_impulses_own_value():
+    row = EventRow(4, 12.0, 12.05, (1.0, 2.0, 1.2), 2.1, 0.62, "flagged", "gust", 0.17)
+    assert p_false_cell(row) == (
+        "0.62 (0.17 on its own; a dropped impulse pushed the same way just before)"
+    )
+    assert p_false_cell(EventRow(5, 13.0, 13.03, None, 3.0, 0.05, "trusted", None, 0.05)) == "0.05"
+    assert p_false_cell(EventRow(6, 14.0, None, None, 3.0, 0.05, "pending", None)) == "0.05"
