@@ -370,6 +370,7 @@ class Mapper:
             "n_train": summary.n_train,
             "n_groups": summary.n_groups,
             "mode": "mixture",
+            "kernel_held": summary.kernel_held,
             "region_min": region.lo.tolist(),
             "region_max": region.hi.tolist(),
         }

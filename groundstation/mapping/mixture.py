@@ -130,6 +130,9 @@ class MixtureFit:
         Groups decided false (posterior P(false) above the group's decision line).
     reasons : tuple of str
         Why the fit may not be trusted (empty when fine).
+    kernel_held : bool
+        The last kernel step asked for the length-scale cap and was not taken
+        (``mapping.hold_at_cap``): the kernel in force was not learnt from these data.
     """
 
     lengthscale: float
@@ -142,6 +145,7 @@ class MixtureFit:
     n_groups: int
     n_flagged: int
     reasons: tuple[str, ...] = ()
+    kernel_held: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

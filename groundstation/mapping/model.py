@@ -206,6 +206,7 @@ class SurfaceModel:
         self._posterior_by_event: dict[tuple, float] = {}
         self._theta: tuple[float, float] | None = None
         self._n_theta = 0  # rows at the last fit that learnt the kernel (0: never learnt)
+        self._held = False  # the last kernel step asked for the cap and was not taken
         self._tiles: dict[tuple, _TileFit] = {}
         self._layout = TileLayout(mapping.tile_m, 0.0)
         self._settled: set[tuple] = set()
@@ -335,9 +336,14 @@ class SurfaceModel:
                 st = pre.posterior_false_
                 learn = self._identified(st, groups)
             if learn:  # only the kernel: every tile refits with it below
-                est = self._estimator(True, warm)
-                self._theta = est.learn_theta(X, y, s2, groups, start=st, directions=V)
-                self._tiles = {}  # a new kernel: every tile refits and re-meshes
+                theta = self._estimator(True, warm).learn_theta(
+                    X, y, s2, groups, start=st, directions=V
+                )
+                capped = "lengthscale_upper" in self.bounds.at_bound(*theta)
+                self._held = capped and self.mapping.hold_at_cap
+                if not self._held:
+                    self._theta = theta
+                    self._tiles = {}  # a new kernel: every tile refits and re-meshes
         layout = self._fitting_layout()
         # every tile the surface can reach, also one with no shape row in its own core
         near = layout.keys_near(ts.X[shape], REACH_LENGTHSCALES * self._theta[0])
@@ -468,6 +474,7 @@ class SurfaceModel:
             n_groups=int(post.size),
             n_flagged=int(np.sum(self.decided_false_)),
             reasons=() if all(f.converged for f in fits) else ("not_converged",),
+            kernel_held=self._held,
         )
         self.fit_ = self  # fitted marker (the tiles hold the estimators)
         self.timings_ = {

@@ -115,7 +115,8 @@ def test_a_fit_asked_to_learn_the_kernel_learns_it_on_everything():
     # last learnt, but the final map's kernel is learnt on all of it
     obs = box_flight(seed=4)
     part = obs[: int(len(obs) * 0.85)]
-    kept, asked, cold = (SurfaceModel(MappingSettings(), SurfaceSettings()) for _ in range(3))
+    ms = MappingSettings(hold_at_cap=False)  # one face: the evidence asks for the cap
+    kept, asked, cold = (SurfaceModel(ms, SurfaceSettings()) for _ in range(3))
     kept.fit(part)
     before = kept.signal_var_
     kept.fit(obs)
@@ -126,6 +127,55 @@ def test_a_fit_asked_to_learn_the_kernel_learns_it_on_everything():
     assert asked.signal_var_ != before
     assert asked.signal_var_ == pytest.approx(cold.signal_var_, rel=1e-4)
     assert asked.lengthscale_ == pytest.approx(cold.lengthscale_, rel=1e-4)
+
+
+def pillar_flight(radius, seed=0, events=24):
+    """Touches all round a vertical cylinder of ``radius`` at the origin, radial approaches."""
+    rng = np.random.default_rng(seed)
+    out, i, t = [], 0, 0.0
+    for e in range(events):
+        a = rng.uniform(0.0, 2.0 * np.pi)
+        n = np.array([np.cos(a), np.sin(a), 0.0])
+        c = np.array([0.0, 0.0, rng.uniform(0.2, 1.2)]) + radius * n
+        for k in range(6):
+            out.append(Observation(i, int(t * S), c + (0.8 - 0.1 * k) * n, 1.0, np.zeros(3), -1,
+                                   0.0))  # fmt: skip
+            i, t = i + 1, t + 0.1
+        out.append(Observation(i, int(t * S), c, 0.0, n, e, 3.0, p_false=0.05, sigma_m=0.005))
+        out.append(Observation(i + 1, int(t * S), c - 0.1 * n, -1.0, n, e, 3.0, p_false=0.05,
+                               sigma_m=0.005))  # fmt: skip
+        i, t = i + 2, t + 2.0
+    return out
+
+
+def test_a_kernel_the_evidence_pushes_to_its_cap_is_not_taken():
+    # one flat face amid free space: the evidence rises without bound in l, which says the
+    # data do not identify the kernel, not that the structure is smooth
+    taken = SurfaceModel(MappingSettings(hold_at_cap=False), SurfaceSettings())
+    taken.fit(box_flight(seed=4))
+    assert "lengthscale_upper" in taken.summary_.at_bounds and not taken.summary_.kernel_held
+    ms = MappingSettings(hold_at_cap=True)
+    held = SurfaceModel(ms, SurfaceSettings())
+    held.fit(box_flight(seed=4))
+    assert (held.lengthscale_, held.signal_var_) == (ms.lengthscale, ms.signal_var)
+    assert held.summary_.kernel_held
+    v = held.mesh().vertices
+    face = (v[:, 1] > 0.2) & (v[:, 1] < 0.8) & (v[:, 2] > 0.2) & (v[:, 2] < 0.8)
+    assert np.median(np.abs(v[face, 0])) < 0.03  # the face is still drawn where touched
+    assert held.event_posteriors()[100] > 0.5  # and the gust in front of it flagged
+
+
+@pytest.mark.parametrize("radius", [0.2, 0.3])
+def test_a_kernel_the_data_identify_is_taken_with_or_without_the_hold(radius):
+    fits = []
+    for hold in (False, True):
+        model = SurfaceModel(MappingSettings(hold_at_cap=hold), SurfaceSettings())
+        model.fit(pillar_flight(radius))
+        fits.append((model.lengthscale_, model.signal_var_, model.summary_.kernel_held))
+    ms = MappingSettings()
+    assert ms.lengthscale_min < fits[0][0] < ms.lengthscale_max
+    assert fits[0][0] != pytest.approx(ms.lengthscale, abs=0.01)  # it was learnt, not kept
+    assert fits[1] == fits[0] and not fits[1][2]
 
 
 def test_only_tiles_whose_data_changed_are_refitted():
