@@ -14,6 +14,19 @@ from groundstation.mapping.settings import MappingSettings, SurfaceSettings
 S = 1_000_000_000
 
 
+def approach_and_touch(out, i, t, c, n, event):
+    """Append a radial approach along ``n`` (six free points 0.1 m apart) and a touch at ``c``
+    (contact and internal row of ``event``); returns the next id and time."""
+    for k in range(6):
+        out.append(Observation(i, int(t * S), c + (0.8 - 0.1 * k) * n, 1.0, np.zeros(3), -1,
+                               0.0))  # fmt: skip
+        i, t = i + 1, t + 0.1
+    out.append(Observation(i, int(t * S), c, 0.0, n, event, 3.0, p_false=0.05, sigma_m=0.005))
+    out.append(Observation(i + 1, int(t * S), c - 0.1 * n, -1.0, n, event, 3.0, p_false=0.05,
+                           sigma_m=0.005))  # fmt: skip
+    return i + 2, t + 2.0
+
+
 def box_flight(offset=(0.0, 0.0, 0.0), seed=0, gusts=((0.9, 0.5, 1.0),)):
     """Touches on the +x face of a box at x = 0 (y, z in 0..1), one event each, free points on
     approach paths in front of it, and false 'contacts' (gusts) in that free space."""
@@ -23,14 +36,7 @@ def box_flight(offset=(0.0, 0.0, 0.0), seed=0, gusts=((0.9, 0.5, 1.0),)):
     out, i, t = [], 0, 0.0
     for e in range(25):
         c = np.array([0.0, *rng.uniform(0.05, 0.95, 2)]) + off
-        for k in range(6):  # the approach path: free points 0.1 m apart
-            out.append(Observation(i, int(t * S), c + (0.8 - 0.1 * k) * n, 1.0, np.zeros(3), -1,
-                                   0.0))  # fmt: skip
-            i, t = i + 1, t + 0.1
-        out.append(Observation(i, int(t * S), c, 0.0, n, e, 3.0, p_false=0.05, sigma_m=0.005))
-        out.append(Observation(i + 1, int(t * S), c - 0.1 * n, -1.0, n, e, 3.0, p_false=0.05,
-                               sigma_m=0.005))  # fmt: skip
-        i, t = i + 2, t + 2.0
+        i, t = approach_and_touch(out, i, t, c, n, e)
     for k, g in enumerate(gusts):
         c = np.asarray(g, float) + off
         e = 100 + k
@@ -137,14 +143,7 @@ def pillar_flight(radius, seed=0, events=24):
         a = rng.uniform(0.0, 2.0 * np.pi)
         n = np.array([np.cos(a), np.sin(a), 0.0])
         c = np.array([0.0, 0.0, rng.uniform(0.2, 1.2)]) + radius * n
-        for k in range(6):
-            out.append(Observation(i, int(t * S), c + (0.8 - 0.1 * k) * n, 1.0, np.zeros(3), -1,
-                                   0.0))  # fmt: skip
-            i, t = i + 1, t + 0.1
-        out.append(Observation(i, int(t * S), c, 0.0, n, e, 3.0, p_false=0.05, sigma_m=0.005))
-        out.append(Observation(i + 1, int(t * S), c - 0.1 * n, -1.0, n, e, 3.0, p_false=0.05,
-                               sigma_m=0.005))  # fmt: skip
-        i, t = i + 2, t + 2.0
+        i, t = approach_and_touch(out, i, t, c, n, e)
     return out
 
 
