@@ -140,6 +140,20 @@ class OpenSpaceOffset:
         """(m,) in [0, 1]: how far in front of the touches near it each point lies (1: open
         space; 0: behind every touch within ``reach_m``, or deep behind the nearest one)."""
         tree, n = self._faces
+        # No touch within reach, or ``front_m`` or more in front of the nearest one: open space
+        # (the front test saturates and nothing is behind), found with the nearest touch alone.
+        d, j = tree.query(X, k=1, distance_upper_bound=self.reach_m)
+        found = np.isfinite(d)
+        jj = np.where(found, j, 0)
+        near = found & (np.einsum("md,md->m", X - tree.data[jj], n[jj]) < self.front_m)
+        out = np.ones(X.shape[0])
+        if near.any():
+            out[near] = self._open_near(X[near])
+        return out
+
+    def _open_near(self, X: np.ndarray) -> np.ndarray:
+        """:meth:`_open` at points with touches near them, from the ``FRONT_NEIGHBOURS`` nearest."""
+        tree, n = self._faces
         k = min(FRONT_NEIGHBOURS, tree.n)
         d, j = tree.query(X, k=k, distance_upper_bound=self.reach_m)
         d, j = d.reshape(len(X), k), j.reshape(len(X), k)
@@ -150,9 +164,12 @@ class OpenSpaceOffset:
         front = np.where(found, front_k, -np.inf).max(axis=1)
         inside = _step((depth - self.inside_m) / self.inside_m)
         if self.solid and k > 1:  # ... unless it is in front of another face of that solid
-            near = np.repeat(jj[:, :1], k, axis=1).ravel()
-            one = one_solid(tree.data[near], n[near], tree.data[jj.ravel()], n[jj.ravel()])
-            one = one.reshape(jj.shape) & found & found[:, :1]
+            # a pair's test depends on the two touches only: each nearest touch's row against
+            # every touch, once, instead of once per point (neighbouring points share them)
+            first, row = np.unique(jj[:, 0], return_inverse=True)
+            a, b = np.repeat(first, tree.n), np.tile(np.arange(tree.n), first.size)
+            table = one_solid(tree.data[a], n[a], tree.data[b], n[b]).reshape(first.size, -1)
+            one = table[row.reshape(-1, 1), jj] & found & found[:, :1]
             one[:, 0] = False
             past = np.where(one, _step(np.where(found, front_k, 0.0) / self.front_m), 0.0)
             inside *= 1.0 - past.max(axis=1)

@@ -94,6 +94,75 @@ def test_past_an_edge_of_one_solid_is_open_space_however_deep_behind_the_nearest
     assert past(under)[0] == pytest.approx(0.0)
 
 
+def _open_per_point(b: OpenSpaceOffset, X: np.ndarray) -> np.ndarray:
+    """The front test of the module docstring written point by point, every touch within reach
+    looked at (the oracle for ``OpenSpaceOffset``'s shortcut and pair table)."""
+    from groundstation.mapping.openspace import _step
+    from groundstation.mapping.training import one_solid
+
+    tree, n = b._faces
+    out = np.ones(len(X))
+    for m, x in enumerate(X):
+        d = np.linalg.norm(tree.data - x, axis=1)
+        near = np.argsort(d, kind="stable")[:16]
+        near = near[d[near] <= b.reach_m]
+        if near.size == 0:
+            continue
+        front = np.einsum("kd,kd->k", x - tree.data[near], n[near])
+        inside = _step((-front[0] - b.inside_m) / b.inside_m)
+        if b.solid:
+            first = np.repeat(near[:1], near.size)
+            one = one_solid(tree.data[first], n[first], tree.data[near], n[near])
+            one[0] = False
+            inside *= 1.0 - np.max(np.where(one, _step(front / b.front_m), 0.0))
+        if b._free is not None:
+            d_free = min(np.min(np.linalg.norm(b._free.data - x, axis=1)), b.reach_m)
+            inside *= _step((d_free - d[near[0]]) / b.inside_m)
+        out[m] = _step(front.max() / b.front_m) * (1.0 - inside)
+    return out
+
+
+def test_the_offset_is_the_per_point_front_test_of_every_touch_within_reach():
+    # two boxes and a wall touched on their faces, free samples between them: points in open
+    # space, on and behind the faces, past edges, out of reach (the fast path answers most
+    # of them from the nearest touch alone, and tests each pair of touches once)
+    rng = np.random.default_rng(7)
+    faces, normals = [], []
+    for centre, half in (([0.0, 0.0, 0.5], 0.4), ([1.3, 0.2, 0.6], 0.3)):
+        for ax in range(3):
+            for sign in (-1.0, 1.0):
+                nrm = np.zeros(3)
+                nrm[ax] = sign
+                for _ in range(6):
+                    p = np.asarray(centre) + half * nrm
+                    q = rng.uniform(-half, half, 3)
+                    q[ax] = 0.0
+                    faces.append(p + q)
+                    normals.append(nrm)
+    for _ in range(10):  # a thin wall at y = 1.2, touched from -y
+        faces.append([rng.uniform(-0.5, 1.5), 1.2, rng.uniform(0.0, 1.2)])
+        normals.append([0.0, -1.0, 0.0])
+    for x in np.arange(4.0, 6.0, 0.3):  # a deck touched on its side and 0.6 m in on its top
+        faces += [[x, 0.0, 1.1], [x + 0.1, 0.6, 1.2]]
+        normals += [[0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]
+    faces, normals = np.asarray(faces), np.asarray(normals)
+    free = rng.uniform([-1.0, -1.0, 0.0], [2.0, 1.0, 1.5], (200, 3))
+    X = np.vstack([  # anywhere, round the first box (its edges, inside it), over the deck's edge
+        rng.uniform([-1.5, -1.5, -0.5], [2.5, 2.5, 2.0], (3000, 3)),
+        rng.uniform([-0.7, -0.7, -0.2], [0.7, 0.7, 1.2], (3000, 3)),
+        rng.uniform([4.0, 0.0, 1.0], [6.0, 0.6, 1.6], (2000, 3)),
+    ])  # fmt: skip
+    wants = []
+    for solid in (False, True):
+        b = OpenSpaceOffset(0.7, 0.1, 0.3, faces, faces, normals, reach_m=0.8, front_m=0.1,
+                            inside_m=0.1, free=free, solid=solid)  # fmt: skip
+        wants.append(_open_per_point(b, X))
+        np.testing.assert_allclose(b._open(X), wants[-1], rtol=0.0, atol=1e-12)
+        assert 0.1 < np.mean(wants[-1] == 1.0) < 0.9
+        assert np.any((wants[-1] > 0.0) & (wants[-1] < 1.0))
+    assert np.sum(wants[1] > wants[0] + 0.01) > 200  # past an edge of one solid: open
+
+
 def _deck_flight():
     """A deck (z 1.0-1.2, y 0-1) touched on its side face y = 0 at mid-height every 0.3 m and
     on its top 0.6 m in from that edge every 0.5 m; the approach paths are free space."""
