@@ -12,7 +12,7 @@ Two processes, so that the shell always answers:
   every other publisher), keeps every observation received (by id), publishes, and answers
   stop signals within a loop turn (<= 50 ms): on SIGINT/SIGTERM it kills the fitting child at
   once, whatever the fit is doing (a fit is pure computation; nothing is lost by killing it).
-- **The fitting child** (``multiprocessing`` spawn; parent-death signal SIGKILL, one BLAS thread)
+- **The fitting child** (``runtime/workers/fitchild.py``; ``multiprocessing`` spawn; parent-death signal SIGKILL, one BLAS thread)
   holds :class:`~groundstation.mapping.mapper.Mapper`: it adds the observations the shell sends,
   asks ``due()`` on the data clock and refits with *all* observations received so far, then
   reports the fit and goes idle. The shell sends new observations only while the child is idle,
@@ -44,16 +44,14 @@ once more on everything and the shell publishes ``log`` "mapper finished: fit N"
 from __future__ import annotations
 
 import argparse
-import ctypes
 import dataclasses
 import multiprocessing
 import os
-import signal
 import sys
 import time
 import warnings
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import zmq
@@ -71,9 +69,7 @@ from groundstation.runtime.session import (
 )
 from groundstation.runtime.worker import Worker, worker_main
 from groundstation.runtime.workers.detector import DETECTOR_FINISHED
-
-if TYPE_CHECKING:  # the shell never imports the mapping core: the fitting child does
-    from groundstation.mapping.mapper import FitResult
+from groundstation.runtime.workers.fitchild import fit_loop
 
 TOPICS = ("mesh", "mapper.fit", "status", "log")
 MAPPER_FINISHED = "mapper finished"
@@ -134,74 +130,6 @@ class FitMessage:
     @classmethod
     def from_plain(cls, plain: dict) -> FitMessage:
         return cls(**plain)
-
-
-def fit_message(fit: FitResult) -> dict:
-    """The plain data (builtins and numpy arrays) of ``fit`` that the shell publishes."""
-    m = fit.mesh
-    mesh: dict[str, Any] = {}
-    if fit.reliable and m is not None:
-        std = m.std if m.std is not None else np.zeros(len(m.vertices))
-        mesh = {
-            "vertices": np.ascontiguousarray(m.vertices, dtype=np.float32),
-            "triangles": np.ascontiguousarray(m.faces, dtype=np.int32),
-            "vertex_std": np.ascontiguousarray(std, dtype=np.float32),
-        }
-    return {
-        "fit_index": int(fit.fit_index),
-        "data_ns": int(fit.data_ns),
-        "reliable": bool(fit.reliable),
-        "reasons": tuple(str(r) for r in fit.reasons),
-        "fit_s": float(fit.timings.get("total_s", 0.0)),
-        "hyperparameters": dict(fit.hyperparameters),
-        "flagged_events": tuple(int(e) for e in fit.flagged_events),
-        "ids": np.asarray(fit.ids, dtype=np.int64),
-        "u": np.asarray(fit.u, dtype=np.float64),
-        "flags": np.asarray(fit.flags),
-        "awaiting_events": tuple(int(e) for e in fit.awaiting_events),
-        **mesh,
-    }
-
-
-def _die_with(parent: int) -> None:
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)
-    except (OSError, AttributeError):
-        pass
-    if os.getppid() != parent:
-        os._exit(75)
-
-
-def fit_loop(conn: Any, config_text: str, parent: int) -> None:
-    """The fitting child: add observations, refit when due, report (see the module docstring)."""
-    import tomllib
-
-    from threadpoolctl import threadpool_limits
-
-    from groundstation.config import load_config
-    from groundstation.mapping.mapper import Mapper
-
-    _die_with(parent)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the shell decides when the child ends
-    threadpool_limits(1)
-    config = load_config(base=tomllib.loads(config_text))
-    mapper = Mapper.from_config(config)
-    conn.send(("idle", 0, 0))
-    while True:
-        try:
-            msg = conn.recv()
-        except (EOFError, OSError):
-            return
-        if msg[0] != "add":
-            return
-        _, batch, final = msg
-        mapper.add(batch)
-        if mapper.due() or (final and mapper.pending and mapper.ready()):
-            conn.send(("fitting", mapper.fit_index + 1, len(mapper)))
-            conn.send(("fit", fit_message(mapper.refit())))
-        if final:
-            conn.send(("finished", mapper.fit_index))
-        conn.send(("idle", len(mapper), mapper.pending))
 
 
 class FitChild:

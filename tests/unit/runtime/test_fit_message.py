@@ -17,7 +17,8 @@ import numpy as np
 
 from groundstation.contact.detector import Observation
 from groundstation.mapping.mapper import Mapper, MapperSettings
-from groundstation.runtime.workers.mapper import FitMessage, fit_message
+from groundstation.runtime.workers.fitchild import fit_message
+from groundstation.runtime.workers.mapper import FitMessage
 
 S = 1_000_000_000
 

@@ -1,0 +1,87 @@
+"""The mapper's fitting child: observations in, refits, plain-data reports out.
+
+It holds the :class:`~groundstation.mapping.mapper.Mapper` of a mapper shell
+(``runtime/workers/mapper.py``, whose docstring gives the protocol): it adds the observations
+the shell sends, refits when one is due on the data clock, and reports each fit as plain data
+(:func:`fit_message`), never as the mapping core's own objects.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from groundstation.mapping.mapper import FitResult
+
+
+def fit_message(fit: FitResult) -> dict:
+    """The plain data (builtins and numpy arrays) of ``fit`` that the shell publishes."""
+    m = fit.mesh
+    mesh: dict[str, Any] = {}
+    if fit.reliable and m is not None:
+        std = m.std if m.std is not None else np.zeros(len(m.vertices))
+        mesh = {
+            "vertices": np.ascontiguousarray(m.vertices, dtype=np.float32),
+            "triangles": np.ascontiguousarray(m.faces, dtype=np.int32),
+            "vertex_std": np.ascontiguousarray(std, dtype=np.float32),
+        }
+    return {
+        "fit_index": int(fit.fit_index),
+        "data_ns": int(fit.data_ns),
+        "reliable": bool(fit.reliable),
+        "reasons": tuple(str(r) for r in fit.reasons),
+        "fit_s": float(fit.timings.get("total_s", 0.0)),
+        "hyperparameters": dict(fit.hyperparameters),
+        "flagged_events": tuple(int(e) for e in fit.flagged_events),
+        "ids": np.asarray(fit.ids, dtype=np.int64),
+        "u": np.asarray(fit.u, dtype=np.float64),
+        "flags": np.asarray(fit.flags),
+        "awaiting_events": tuple(int(e) for e in fit.awaiting_events),
+        **mesh,
+    }
+
+
+def _die_with(parent: int) -> None:
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent:
+        os._exit(75)
+
+
+def fit_loop(conn: Any, config_text: str, parent: int) -> None:
+    """Add observations, refit when due, report (see the module docstring)."""
+    import tomllib
+
+    from threadpoolctl import threadpool_limits
+
+    from groundstation.config import load_config
+    from groundstation.mapping.mapper import Mapper
+
+    _die_with(parent)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the shell decides when the child ends
+    threadpool_limits(1)
+    config = load_config(base=tomllib.loads(config_text))
+    mapper = Mapper.from_config(config)
+    conn.send(("idle", 0, 0))
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg[0] != "add":
+            return
+        _, batch, final = msg
+        mapper.add(batch)
+        if mapper.due() or (final and mapper.pending and mapper.ready()):
+            conn.send(("fitting", mapper.fit_index + 1, len(mapper)))
+            conn.send(("fit", fit_message(mapper.refit())))
+        if final:
+            conn.send(("finished", mapper.fit_index))
+        conn.send(("idle", len(mapper), mapper.pending))
