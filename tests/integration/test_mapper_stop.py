@@ -1,4 +1,5 @@
-"""The mapper answers a stop signal at once, even in the middle of a long fit.
+"""The mapper answers a stop signal at once, even in the middle of a long fit; a fitting child
+that dies is started again, and the map it draws holds every observation.
 
 Observations from a real flight are published to a mapper process; as soon as its status says
 ``fitting`` (the first cold fit of a robust GPIS takes seconds to tens of seconds: see
@@ -79,6 +80,64 @@ def test_a_fitting_mapper_stops_at_once(zctx):
     left = {p: _cmd(p) for p in child if _alive(p)}
     assert not left, left
     print(f"\nthe mapper stopped {stop_s:.2f} s after SIGINT, in the middle of a fit")
+
+
+def test_a_killed_fitting_child_is_started_again_with_every_observation(zctx):
+    stage, obs = ContactStage(), []
+    for e in iter_replay(str(LOG), end=40):
+        if e.topic in INPUT_TOPICS:
+            obs += [o for o in stage.push(e) if o.topic == "observations"]
+    root = private_root()
+    session = Session(new_session_id(), ("detector", "mapper"), root)
+    pub = Publisher(topics=["observations", "log"], context=zctx,
+                    **session.publisher_kwargs("detector"))  # fmt: skip
+    sub = Subscriber(session.subscribe_endpoints(), ["status", "mapper.fit"], context=zctx)
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    proc = subprocess.Popen(
+        python_module("groundstation.runtime.workers.mapper", *session.as_args()), env=env,
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    seen: dict = {"restarts": 0, "ids": 0}
+    try:
+        pub.wait_for_subscribers(1, ["observations"], timeout_s=60)
+        half = len(obs) // 2
+        for o in obs[:half]:
+            pub.publish("observations", o.payload, o.arrays, source_ns=o.header.source_ns)
+
+        def children() -> list[int]:
+            return [int(p) for p in os.listdir("/proc")
+                    if p.isdigit() and _parent(int(p)) == proc.pid and _alive(int(p))]  # fmt: skip
+
+        def watch(until) -> bool:
+            e = sub.recv(200)
+            if e is not None and e.topic == "status" and e.payload["process"] == "mapper":
+                seen["restarts"] = e.payload["topics"]["mapper"]["child_restarts"]
+            elif e is not None and e.topic == "mapper.fit":
+                seen["ids"] = len(e.arrays["ids"])
+            return until()
+
+        wait_for(lambda: watch(lambda: seen["ids"] > 0), 120, "a first fit", poll=0)
+        first = children()
+        assert len(first) == 1, [_cmd(p) for p in first]
+        assert "groundstation.runtime.workers.fitchild" in _cmd(first[0])
+        os.kill(first[0], signal.SIGKILL)
+        for o in obs[half:]:  # published while the child is dead or starting
+            pub.publish("observations", o.payload, o.arrays, source_ns=o.header.source_ns)
+        wait_for(lambda: watch(lambda: seen["restarts"] == 1 and seen["ids"] == len(obs)), 120,
+                 "a fit of every observation by a new child", poll=0)  # fmt: skip
+        second = children()
+        assert len(second) == 1 and second != first
+        proc.send_signal(signal.SIGKILL)  # the shell dies at once: its child with it
+        proc.wait(5)
+        time.sleep(0.5)
+        assert not [p for p in second if _alive(p)], "the fitting child outlived its shell"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        sub.close()
+        pub.close(linger_ms=0)
+        shutil.rmtree(root, ignore_errors=True)
 
 
 def _alive(pid: int) -> bool:

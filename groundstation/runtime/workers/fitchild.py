@@ -4,13 +4,25 @@ It holds the :class:`~groundstation.mapping.mapper.Mapper` of a mapper shell
 (``runtime/workers/mapper.py``, whose docstring gives the protocol): it adds the observations
 the shell sends, refits when one is due on the data clock, and reports each fit as plain data
 (:func:`fit_message`), never as the mapping core's own objects.
+
+Command line (started by the shell's ``FitChild``)::
+
+    python -m groundstation.runtime.workers.fitchild --fd N --parent PID
+
+``N`` is its end of a socket pair with the shell, used as a ``multiprocessing`` connection; the
+shell's first message is ``("config", TOML text)``. It imports only what fitting needs, so that it
+is ready as soon as the mapping core is imported.
 """
 
 from __future__ import annotations
 
+import argparse
 import ctypes
 import os
 import signal
+import sys
+from collections.abc import Sequence
+from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -85,3 +97,26 @@ def fit_loop(conn: Any, config_text: str, parent: int) -> None:
         if final:
             conn.send(("finished", mapper.fit_index))
         conn.send(("idle", len(mapper), mapper.pending))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point (see the module docstring)."""
+    p = argparse.ArgumentParser(prog="python -m groundstation.runtime.workers.fitchild")
+    p.add_argument("--fd", type=int, required=True, help="its end of the socket pair")
+    p.add_argument("--parent", type=int, required=True, help="the shell's process id")
+    args = p.parse_args(argv)
+    _die_with(args.parent)  # before the imports: a shell gone meanwhile ends it at once
+    conn = Connection(args.fd)
+    try:
+        kind, config_text = conn.recv()
+    except (EOFError, OSError):
+        return 0
+    if kind != "config":
+        print(f"fitting child: expected the configuration first, got {kind!r}", file=sys.stderr)
+        return 2
+    fit_loop(conn, config_text, args.parent)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
