@@ -584,7 +584,8 @@ class SurfaceModel:
         (``mapping.open_offset``): the field whose zero set the mesh draws."""
         self._check()
         Xq = np.asarray(Xq, dtype=np.float64)
-        mean = self.mapping.prior_mean + self.offset_(Xq)
+        offset = self.offset_(Xq)
+        mean = self.mapping.prior_mean + offset
         std = np.full(Xq.shape[0], math.sqrt(self.signal_var_))
         keys = self._layout.keys(Xq)
         with blas_threads(self.mapping.blas_threads):
@@ -597,7 +598,7 @@ class SurfaceModel:
                     mean[sel], std[sel] = out
                 else:
                     mean[sel] = out
-                mean[sel] += self.offset_(Xq[sel])
+                mean[sel] += offset[sel]
         return (mean, std) if return_std else mean
 
     # ------------------------------------------------------------------ region, field, mesh
