@@ -180,7 +180,7 @@ def test_sigkill_of_live_leaves_no_worker_after_two_seconds(tmp_path):
 
         wait_for(everyone, 90, "5 workers, the fitting child and 5 spares")
         procs = session_processes(live.pid)
-        assert any("multiprocessing" in k for k in procs.values()), procs
+        assert any("runtime.workers.fitchild" in k for k in procs.values()), procs
         os.kill(live.pid, signal.SIGKILL)
         live.wait(10)
         time.sleep(2.0)
