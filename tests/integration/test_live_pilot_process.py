@@ -122,7 +122,10 @@ def test_pilot_process_publishes_commands_only_while_armed_and_every_raw_byte(tm
     armed_ns = next(e.header.source_ns for e in events if e.payload["event"] == "armed")
     estop_ns = next(e.header.source_ns for e in events if e.payload["event"] == "estop")
     cmds = by("pilot.command")
-    assert 25 <= len(cmds) <= 100, len(cmds)  # ~1.3 s armed at 50 Hz, loosely
+    # at most one command per 50 Hz tick of the pilot's own armed window (~1.3 s of the writer's
+    # clock; a pilot starved of CPU reads the FIFO's backlog late, and its window shrinks)
+    ticks_armed = (estop_ns - armed_ns) / 1e9 * 50
+    assert 1 <= len(cmds) <= ticks_armed + 2, (len(cmds), ticks_armed)
     assert all(armed_ns <= c.header.source_ns < estop_ns for c in cmds)
     assert all(c.payload["enabled"] and c.payload["z"] == 0 for c in cmds)
     assert [c.header.seq for c in cmds] == list(range(len(cmds)))
