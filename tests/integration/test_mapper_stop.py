@@ -10,6 +10,7 @@ exits at once and takes the child with it (the measured time is printed; the bou
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
@@ -31,27 +32,52 @@ pytestmark = pytest.mark.timeout(180)
 LOG = Path(__file__).resolve().parents[2] / "replay_logs" / "wall_survey.mcap"
 
 
-def test_a_fitting_mapper_stops_at_once(zctx):
+def _observations() -> list:
+    """The detector's observations of the first 40 s of the bundled wall survey."""
     stage, obs = ContactStage(), []
     for e in iter_replay(str(LOG), end=40):
         if e.topic in INPUT_TOPICS:
             obs += [o for o in stage.push(e) if o.topic == "observations"]
-    assert len(obs) > 40
+    return obs
+
+
+def _publish(pub: Publisher, obs: list) -> None:
+    for o in obs:
+        pub.publish("observations", o.payload, o.arrays, source_ns=o.header.source_ns)
+
+
+@contextlib.contextmanager
+def _mapper(zctx, topics: list[str]):
+    """A mapper process of a new session, a detector-side publisher it has subscribed to, and a
+    subscriber to ``topics``; everything stopped and removed on exit."""
     root = private_root()
     session = Session(new_session_id(), ("detector", "mapper"), root)
     pub = Publisher(topics=["observations", "log"], context=zctx,
                     **session.publisher_kwargs("detector"))  # fmt: skip
-    status = Subscriber(session.subscribe_endpoints(), ["status"], context=zctx)
+    sub = Subscriber(session.subscribe_endpoints(), topics, context=zctx)
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     proc = subprocess.Popen(
         python_module("groundstation.runtime.workers.mapper", *session.as_args()), env=env,
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
     )  # fmt: skip
-    child: list[int] = []
     try:
         pub.wait_for_subscribers(1, ["observations"], timeout_s=60)
-        for o in obs:
-            pub.publish("observations", o.payload, o.arrays, source_ns=o.header.source_ns)
+        yield proc, pub, sub
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        sub.close()
+        pub.close(linger_ms=0)
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def test_a_fitting_mapper_stops_at_once(zctx):
+    obs = _observations()
+    assert len(obs) > 40
+    child: list[int] = []
+    with _mapper(zctx, ["status"]) as (proc, pub, status):
+        _publish(pub, obs)
 
         def fitting() -> bool:
             e = status.recv(200)
@@ -67,13 +93,6 @@ def test_a_fitting_mapper_stops_at_once(zctx):
         proc.send_signal(signal.SIGINT)
         rc = proc.wait(5)
         stop_s = time.monotonic() - t0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
-        status.close()
-        pub.close(linger_ms=0)
-        shutil.rmtree(root, ignore_errors=True)
     assert rc == 0, proc.stderr.read().decode()[-2000:]
     assert child, "no fitting child process"
     time.sleep(0.5)
@@ -83,26 +102,11 @@ def test_a_fitting_mapper_stops_at_once(zctx):
 
 
 def test_a_killed_fitting_child_is_started_again_with_every_observation(zctx):
-    stage, obs = ContactStage(), []
-    for e in iter_replay(str(LOG), end=40):
-        if e.topic in INPUT_TOPICS:
-            obs += [o for o in stage.push(e) if o.topic == "observations"]
-    root = private_root()
-    session = Session(new_session_id(), ("detector", "mapper"), root)
-    pub = Publisher(topics=["observations", "log"], context=zctx,
-                    **session.publisher_kwargs("detector"))  # fmt: skip
-    sub = Subscriber(session.subscribe_endpoints(), ["status", "mapper.fit"], context=zctx)
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
-    proc = subprocess.Popen(
-        python_module("groundstation.runtime.workers.mapper", *session.as_args()), env=env,
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-    )  # fmt: skip
+    obs = _observations()
     seen: dict = {"restarts": 0, "ids": 0}
-    try:
-        pub.wait_for_subscribers(1, ["observations"], timeout_s=60)
+    with _mapper(zctx, ["status", "mapper.fit"]) as (proc, pub, sub):
         half = len(obs) // 2
-        for o in obs[:half]:
-            pub.publish("observations", o.payload, o.arrays, source_ns=o.header.source_ns)
+        _publish(pub, obs[:half])
 
         def children() -> list[int]:
             return [int(p) for p in os.listdir("/proc")
@@ -121,8 +125,7 @@ def test_a_killed_fitting_child_is_started_again_with_every_observation(zctx):
         assert len(first) == 1, [_cmd(p) for p in first]
         assert "groundstation.runtime.workers.fitchild" in _cmd(first[0])
         os.kill(first[0], signal.SIGKILL)
-        for o in obs[half:]:  # published while the child is dead or starting
-            pub.publish("observations", o.payload, o.arrays, source_ns=o.header.source_ns)
+        _publish(pub, obs[half:])  # published while the child is dead or starting
         wait_for(lambda: watch(lambda: seen["restarts"] == 1 and seen["ids"] == len(obs)), 120,
                  "a fit of every observation by a new child", poll=0)  # fmt: skip
         second = children()
@@ -131,13 +134,6 @@ def test_a_killed_fitting_child_is_started_again_with_every_observation(zctx):
         proc.wait(5)
         time.sleep(0.5)
         assert not [p for p in second if _alive(p)], "the fitting child outlived its shell"
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
-        sub.close()
-        pub.close(linger_ms=0)
-        shutil.rmtree(root, ignore_errors=True)
 
 
 def _alive(pid: int) -> bool:
