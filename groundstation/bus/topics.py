@@ -215,14 +215,18 @@ _TABLE = [
         "peak_g": Field("float"), "p_false": Field("float", optional=True),
         "p_false_impulse": Field("float", optional=True),
         "dv_mps": Field("float", optional=True), "rebound": Field("bool", optional=True),
-        "features": Field("dict", optional=True)},
+        "features": Field("dict", optional=True),
+        "floor_clearance_m": Field("float", optional=True),
+        "at_floor": Field("bool", optional=True)},
        {"position_m": _VEC3, "normal": _VEC3},
        "A contact began or ended: drone position (m, world) at its onset, outward unit normal, "
        "peak in G. The impulse detector sends begin and end together once it has decided, "
        "with p_false (probability from the physics that the event is not a contact; "
        "p_false_impulse: from its own impulse, without the burst context), dv_mps "
        "(impulse per unit mass along the normal), rebound and the named evidence features; "
-       "state 'rejected': a candidate too likely false to make observations."),
+       "state 'rejected': a candidate too likely false to make observations, or one begun "
+       "with the body at the floor (at_floor; floor_clearance_m: the body's lowest point "
+       "above the configured floor at the onset, m)."),
     _t("observations", "observation", 2, "detector", "lossless", "data",
        {"id": Field("int"), "label": Field("int", choices=(-1, 0, 1)),
         "event_id": Field("int", optional=True), "accel_g": Field("float", optional=True),

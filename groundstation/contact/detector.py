@@ -98,9 +98,11 @@ class ContactEvent:
     """One detected contact (threshold: crossing to release; impulse: onset to release).
 
     ``p_false``, ``features`` (:class:`~groundstation.contact.evidence.ImpulseFeatures`) and
-    ``rejected`` (too likely false to make observations) come from the impulse detector;
-    ``p_false_impulse`` is the evidence model's value on the impulse alone (``p_false`` adds
-    the burst context, ``contact.burst_odds``).
+    ``rejected`` (too likely false to make observations, or begun at the floor) come from the
+    impulse detector; ``p_false_impulse`` is the evidence model's value on the impulse alone
+    (``p_false`` adds the burst context, ``contact.burst_odds``); ``floor_clearance_m`` is the
+    height of the body's lowest point above the configured floor at the onset (NaN without a
+    floor, pose or attitude) and ``at_floor`` whether that rejected it (``contact.floor_z_m``).
     """
 
     id: int
@@ -114,6 +116,8 @@ class ContactEvent:
     features: object = None
     rejected: bool = False
     p_false_impulse: float = math.nan
+    floor_clearance_m: float = math.nan
+    at_floor: bool = False
 
 
 @dataclasses.dataclass

@@ -76,6 +76,7 @@ from groundstation.contact.vehicle import VehicleSettings, contact_offset
 
 _C_ENU_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 _C_FRD_FLU = np.diag([1.0, -1.0, -1.0])
+_UP = np.array([0.0, 0.0, 1.0])  # the floor's outward normal, world ENU
 _NAN3 = (math.nan, math.nan, math.nan)
 _SEGMENT_GAP_NS = 250_000_000  # a longer gap in the samples restarts the warm-up
 _ONSET_FRACTION = 0.15  # onset: walking back from the peak to this share of it
@@ -556,7 +557,9 @@ class ImpulseDetector:
             p_false = burst_raised(p_impulse, s.burst_odds)
         if p_impulse >= s.reject_p_false:
             self._false_pushes.append((t_on, n))
-        rejected = not p_false < s.reject_p_false
+        clearance = self._floor_clearance(on_row)
+        at_floor = -self.vehicle.reach_m <= clearance <= s.floor_margin_m  # NaN: False
+        rejected = at_floor or not p_false < s.reject_p_false
         close_row = cl.rows[1] - c.base
         event = ContactEvent(
             self._next_event_id,
@@ -569,12 +572,26 @@ class ImpulseDetector:
             features=feats,
             rejected=rejected,
             p_false_impulse=p_impulse,
+            floor_clearance_m=clearance,
+            at_floor=at_floor,
         )
         self._next_event_id += 1
         self.events.append(event)
         if rejected:
             return []
         return self._contact_observations(event, on_row, close_row, feats)
+
+    def _floor_clearance(self, row: int) -> float:
+        """Height of the body's lowest point above ``contact.floor_z_m`` at a buffer row,
+        metres: NaN without a floor, a position or a finite attitude."""
+        floor, p = self.settings.floor_z_m, self._c.p[row]
+        if not (math.isfinite(floor) and np.isfinite(p).all()):
+            return math.nan
+        R = self._r_world(np.array([row]))[0] @ _C_FRD_FLU  # body FLU -> world ENU
+        if not np.isfinite(R).all():
+            return math.nan
+        low = contact_offset(self.vehicle, _UP, R)  # the support point facing the floor
+        return float(p[2] + low[2] - floor)
 
     def _left(self, moved: np.ndarray, n: np.ndarray, dt_ns: int) -> bool:
         """Whether a vehicle that has moved by ``moved`` (m) since the onset of a push along

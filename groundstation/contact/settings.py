@@ -70,6 +70,21 @@ class ContactSettings:
         tuning flights' maps (``bench sessions --seeds 200-202``, README). It only looks
         back, so it costs no latency; the context is the earlier candidate's own
         ``p_false`` (``p_false_impulse``), so a burst cannot raise its successors in a chain.
+    floor_z_m : float
+        Height of the floor in the world frame, metres; NaN (the default) when the frame's
+        floor is unknown (a flight imported in a frame relative to its take-off point). A
+        candidate that begins while the vehicle's lowest point (the support point of its body
+        straight down, at the onset's position and attitude: ``vehicle.contact_offset`` with
+        the floor's normal) lies within ``floor_margin_m`` of the floor, or below it by no
+        more than the body's reach, is rejected (``state = "rejected"``, ``at_floor`` true):
+        a body at the floor may have hit the floor, and one lying there after a crash is
+        pushed about by the wind, and an impulse says neither which surface it met nor
+        whether it met one. Farther below than the reach, the configured floor is not this
+        frame's: nothing is rejected and the event says how far below
+        (``floor_clearance_m``). A SITL recording holds its floor (0); a motion-capture
+        frame whose ground plane was set on the floor has it at 0 too.
+    floor_margin_m : float
+        ... the clearance above the floor within which a body counts as at it, metres.
     position_sigma_m : float
         Standard deviation of the mocap position, metres (a term of each contact's placement
         uncertainty ``sigma_m``).
@@ -164,6 +179,8 @@ class ContactSettings:
     reject_p_false: float = 0.98
     burst_window_s: float = 2.0
     burst_odds: float = 8.0
+    floor_z_m: float = math.nan
+    floor_margin_m: float = 0.05
     position_sigma_m: float = 0.003
     evidence_model: str = ""
     filter: Literal["moving_average", "butterworth2", "none"] = "moving_average"
@@ -227,6 +244,11 @@ class ContactSettings:
             raise ValueError(
                 "contact.burst_window_s must be >= 0 and contact.burst_odds >= 1, got "
                 f"{self.burst_window_s!r}, {self.burst_odds!r}"
+            )
+        if math.isinf(self.floor_z_m) or not self.floor_margin_m >= 0:
+            raise ValueError(
+                "contact.floor_z_m must be finite or nan and contact.floor_margin_m >= 0, got "
+                f"{self.floor_z_m!r}, {self.floor_margin_m!r}"
             )
         axis = self.thrust_axis
         if len(axis) != 3 or not all(math.isfinite(v) for v in axis) or math.hypot(*axis) < 0.5:

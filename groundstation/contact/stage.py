@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import math
 from collections.abc import Iterable
 
 import numpy as np
@@ -85,6 +86,7 @@ class StageStats:
     no_pose: int = 0  # IMU samples processed without a position
     observations: int = 0
     events: int = 0
+    at_floor: int = 0  # candidates rejected because they began with the body at the floor
 
     def as_dict(self) -> dict[str, int]:
         return dataclasses.asdict(self)
@@ -172,6 +174,8 @@ def event_payload(ev: ContactEvent, state: str) -> dict:
             rebound=bool(f.rebound),
             features=f.as_dict(),
         )
+    if math.isfinite(ev.floor_clearance_m):
+        payload.update(floor_clearance_m=float(ev.floor_clearance_m), at_floor=bool(ev.at_floor))
     return payload
 
 
@@ -371,6 +375,7 @@ class ContactStage:
             states = (("rejected", ev.t_start_ns),) if ev.rejected else (
                 ("begin", ev.t_start_ns), ("end", ev.t_end_ns)
             )  # fmt: skip
+            self.stats.at_floor += ev.at_floor
             for state, t in states:
                 self.stats.events += state == "begin"
                 out.append(self._env("contact.event", event_payload(ev, state), {

@@ -496,3 +496,66 @@ def test_burst_odds_arithmetic_and_settings():
         ContactSettings(burst_odds=0.5)
     with pytest.raises(ValueError, match="burst_window_s"):
         ContactSettings(burst_window_s=-1.0)
+
+
+def _lowest_body_point(body: VehicleSettings, r_world_flu: np.ndarray) -> float:
+    """Oracle: the lowest of a dense sampling of the body's parts (world z offset, m)."""
+    if body.shape == "cylinder":
+        return -0.5 * body.height_m  # the cylinder stays vertical whatever the attitude
+    ang = np.linspace(0.0, 2 * math.pi, 3600, endpoint=False)
+    ring = body.guard_radius_m * np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], 1)
+    rims = (body.rotor_centres()[:, None, :] + ring[None]).reshape(-1, 3)
+    corners = np.array(np.meshgrid(*[(-h, h) for h in body.body_half_m])).reshape(3, -1).T
+    pts = np.concatenate([rims, corners, body.leg_points()])
+    return float((pts @ r_world_flu.T)[:, 2].min())
+
+
+@pytest.mark.parametrize("body", [VehicleSettings(), VehicleSettings(shape="guards")],
+                         ids=["cylinder", "guards"])  # fmt: skip
+@pytest.mark.parametrize("roll_deg", [0.0, 35.0, 90.0])
+def test_the_floor_clearance_is_the_bodys_lowest_point_above_the_floor(body, roll_deg):
+    t, f, q, pos = flight(**touch(speed=0.6))
+    roll = math.radians(roll_deg)
+    r_x = np.array([[1, 0, 0], [0, math.cos(roll), -math.sin(roll)],
+                    [0, math.sin(roll), math.cos(roll)]])  # fmt: skip
+    q = np.tile(quat_from_axis_angle([1.0, 0.0, 0.0], roll), (t.size, 1))  # FRD -> NED, yaw 0
+    f = f @ r_x  # the same specific force, read by the rolled body: R^T f for each sample
+    det, _ = run((t, f, q, pos), ContactSettings(floor_z_m=0.3), body)
+    ev = det.events[0]
+    on = int(np.searchsorted(t, ev.t_start_ns))
+    r_world_flu = ENU_TO_NED @ r_x @ np.diag([1.0, -1.0, -1.0])
+    expected = pos[on, 2] + _lowest_body_point(body, r_world_flu) - 0.3
+    assert ev.floor_clearance_m == pytest.approx(expected, abs=2e-3)
+    assert not ev.at_floor and not ev.rejected  # 0.5-0.9 m above the floor
+
+
+@pytest.mark.parametrize(
+    ("clearance", "at_floor"),
+    [(0.0, True), (0.049, True), (0.051, False), (-0.2, True), (-0.25, False), (None, False)],
+)
+def test_a_candidate_begun_with_the_body_at_the_floor_is_rejected(clearance, at_floor):
+    """The cylinder's bottom lies 0.05 m below its centre; the touch's onset sits 1.0 m up
+    (``flight``), so the floor is placed to give the body the clearance wanted. Within the
+    margin, or below the floor by less than the body's reach (0.206 m), the candidate is
+    rejected and makes no observation; farther below, the floor is not this frame's."""
+    data = flight(**touch(speed=0.6))
+    t, _, _, pos = data
+    on = int(np.searchsorted(t, int(1e9 + 3.0 * 1e9)))
+    floor = math.nan if clearance is None else float(pos[on, 2]) - 0.05 - clearance
+    det, obs = run(data, ContactSettings(floor_z_m=floor))
+    ev = det.events[0]
+    assert ev.at_floor is at_floor and ev.rejected is at_floor
+    assert ev.p_false < 0.5  # the impulse alone says touch: only the floor rejects it
+    surface = [o for o in obs if o.label == LABEL_SURFACE]
+    assert (len(surface) == 0) is at_floor
+    if clearance is None:
+        assert math.isnan(ev.floor_clearance_m)
+    else:
+        assert ev.floor_clearance_m == pytest.approx(clearance, abs=0.01)
+
+
+def test_floor_settings_are_checked():
+    with pytest.raises(ValueError, match="floor_z_m"):
+        ContactSettings(floor_z_m=math.inf)
+    with pytest.raises(ValueError, match="floor_margin_m"):
+        ContactSettings(floor_margin_m=-0.01)
