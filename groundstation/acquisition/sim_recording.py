@@ -22,7 +22,8 @@ Model of the station side (pure and deterministic from the seed; :class:`Station
 The live decoders (:mod:`groundstation.acquisition.decoders`) run on these chunks at their
 receive times, and their samples are recorded too (as the link/mocap processes would have
 published them), plus ``truth.json`` and the ``groundstation`` metadata, whose ``config`` holds
-the simulated airframe as the station's ``[vehicle]`` table (:func:`station_vehicle`): a replay,
+the simulated airframe as the station's ``[vehicle]`` table (:func:`station_vehicle`) and the
+floor's height (:func:`station_config`): a replay,
 ``batch`` or ``bench sessions --logs`` of the recording starts from the body that was flown, as
 it does from a live session's recorded configuration.
 """
@@ -207,6 +208,14 @@ def vehicle_config(airframe: Airframe) -> str:
     return "[vehicle]\n" + to_toml(station_vehicle(airframe))
 
 
+def station_config(sim: Any) -> str:
+    """What the station knows of a simulated session: the airframe's ``[vehicle]`` and the
+    height of the floor both physics engines put at the scene region's bottom
+    (``contact.floor_z_m``: a candidate begun with the body at the floor is rejected)."""
+    floor = float(sim.scene.region_min[2])
+    return f"{vehicle_config(sim.vehicle.body.airframe)}\n[contact]\nfloor_z_m = {floor!r}\n"
+
+
 def write_simulation(
     sim: Any,
     path: str,
@@ -235,7 +244,7 @@ def write_simulation(
     meta = layout.station_metadata(
         station_version="sitl",
         created_by=created_by,
-        config=vehicle_config(sim.vehicle.body.airframe),
+        config=station_config(sim),
         sources=[LINK_SOURCE, MOCAP_SOURCE],
         extra={"sitl_seed": str(seed), "wire_model": json.dumps(asdict(wire), sort_keys=True)},
     )

@@ -202,7 +202,8 @@ def add_sitl_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         metavar="FILE.toml",
-        help="write the station's [vehicle] for the simulated airframe to this file, for "
+        help="write the station's [vehicle] for the simulated airframe and its floor height "
+        "([contact] floor_z_m) to this file, for "
         "'groundstation live/record --config FILE.toml' (a --record log stores it anyway)",
     )
     parser.add_argument(
@@ -299,12 +300,13 @@ def run_sitl(args: argparse.Namespace) -> int:
 
 
 def _station_config(args: argparse.Namespace, sim: Simulation) -> None:
-    """``--station-config``: the station's ``[vehicle]`` for this airframe, written for a live
+    """``--station-config``: the station's ``[vehicle]`` for this airframe and the floor's
+    height, written for a live
     session's ``--config``; without it a live run of an airframe other than the default
     cylinder says how to get it (the station cannot learn the body over MAVLink)."""
-    from groundstation.acquisition.sim_recording import vehicle_config
+    from groundstation.acquisition.sim_recording import station_config
 
-    text = vehicle_config(sim.vehicle.body.airframe)
+    text = station_config(sim)
     if args.station_config is not None:
         try:
             args.station_config.write_text(

@@ -1,7 +1,8 @@
 """A recording carries the body it was flown with, and everything that replays it uses it.
 
 ``groundstation sitl --physics mujoco --record`` stores the simulated airframe as the station's
-``[vehicle]`` table in the recording's configuration; ``replay``, ``batch`` (on a real local
+``[vehicle]`` table (and the floor's height, ``[contact] floor_z_m``) in the recording's
+configuration; ``replay``, ``batch`` (on a real local
 Dask cluster) and ``calibrate`` of that file start from it, ``--set`` on top. Before, all of
 them replayed a guarded quadrotor's flight as the paper's cylinder.
 """
@@ -35,7 +36,8 @@ def mujoco_log(tmp_path_factory):
 def test_a_sitl_recording_stores_its_airframe(mujoco_log, tmp_path):
     with open_recording(mujoco_log) as rec:
         tree = tomllib.loads(rec.metadata()["config"])
-    assert set(tree) == {"vehicle"} and tree["vehicle"]["shape"] == "guards"
+    assert set(tree) == {"vehicle", "contact"} and tree["vehicle"]["shape"] == "guards"
+    assert tree["contact"] == {"floor_z_m": 0.0}  # the default scene's floor
     simple = tmp_path / "simple.mcap"
     argv = ["sitl", "--speed", "max", "--duration", "1", "--pilot", "script:hover",
             "--record", str(simple)]  # fmt: skip
@@ -56,8 +58,8 @@ def test_replay_and_calibrate_start_from_the_recorded_airframe(mujoco_log, tmp_p
     assert vehicle.shape == "guards" and vehicle.arm_length_m == 0.2  # --set on top
     assert cli_main(["calibrate", "detector", str(mujoco_log)]) == 0
     err = capsys.readouterr().err
-    assert "replay: settings: the configuration recorded in the log ([vehicle])" in err
-    assert "calibrate: settings: the configuration recorded in the log ([vehicle])" in err
+    assert "replay: settings: the configuration recorded in the log ([contact, vehicle])" in err
+    assert "calibrate: settings: the configuration recorded in the log ([contact, vehicle])" in err
 
 
 def test_batch_starts_each_log_from_its_recorded_airframe(mujoco_log, tmp_path):
@@ -67,8 +69,9 @@ def test_batch_starts_each_log_from_its_recorded_airframe(mujoco_log, tmp_path):
             "--variant", "base", "--variant", "cyl:vehicle.shape=cylinder"]  # fmt: skip
     done = subprocess.run(argv, capture_output=True, text=True, env=ENV, timeout=600)
     assert done.returncode == 0, done.stderr
-    assert "batch: 1 of 1 logs start from the configuration recorded in them ([vehicle])" in (
-        done.stderr
+    assert (
+        "batch: 1 of 1 logs start from the configuration recorded in them ([contact, vehicle])"
+        in done.stderr
     )
     shapes = {}
     for folder in out.iterdir():
