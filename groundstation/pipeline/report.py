@@ -239,6 +239,18 @@ def map_scene(result, trajectory: np.ndarray):
     return vm.scene()
 
 
+def _rejected_text(events) -> str:
+    """How many candidates the detector rejected, and how many of them because they began with
+    the body at the floor (``contact.floor_z_m``)."""
+    rejected = [e for e in events if e.payload.get("state") == "rejected"]
+    floor = sum(bool(e.payload.get("at_floor")) for e in rejected)
+    return (
+        f"{len(rejected)} ({floor} begun with the body at the floor)"
+        if floor
+        else str(len(rejected))
+    )
+
+
 def truth_rows(report: Mapping[str, Any]) -> list[tuple[str, str]]:
     """The report's truth scores as (label, text) summary rows (none without truth): the
     accuracy next to what it costs (surface missing, surface invented, and where the largest
@@ -436,6 +448,7 @@ def write_report_html(
             f"{len(rows)} ({n_flag} flagged"
             + (f", {n_wait} awaiting a second touch)" if n_wait else ")"),
         ),
+        ("candidates rejected", _rejected_text(result.events)),
         ("observations", str(len(result.observations))),
         ("refits", f"{len(result.fits)} (median {_fmt(report.get('refit_s_median'))} s)"),
     ]

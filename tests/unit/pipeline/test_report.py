@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 
-from groundstation.pipeline.report import EventRow, p_false_cell, truth_rows
+from groundstation.bus.envelope import Envelope, Header
+from groundstation.pipeline.report import EventRow, _rejected_text, p_false_cell, truth_rows
 
 
 def test_the_summary_shows_what_accuracy_costs_and_where_the_map_invents_surface():
@@ -53,3 +54,16 @@ def test_a_p_false_raised_by_a_gust_burst_shows_the_impulses_own_value():
     )
     assert p_false_cell(EventRow(5, 13.0, 13.03, None, 3.0, 0.05, "trusted", None, 0.05)) == "0.05"
     assert p_false_cell(EventRow(6, 14.0, None, None, 3.0, 0.05, "pending", None)) == "0.05"
+
+
+def _event(state: str, **payload) -> Envelope:
+    return Envelope("contact.event", Header("contact_event", 1, 0, 0, 0, 0),
+                    {"id": 0, "state": state, "peak_g": 3.0, **payload}, {})  # fmt: skip
+
+
+def test_the_summary_counts_the_candidates_rejected_at_the_floor():
+    events = [_event("rejected", at_floor=True, floor_clearance_m=0.01),
+              _event("rejected", at_floor=False, floor_clearance_m=0.6),
+              _event("rejected"), _event("begin", at_floor=False)]  # fmt: skip
+    assert _rejected_text(events) == "3 (1 begun with the body at the floor)"
+    assert _rejected_text(events[1:]) == "2"
