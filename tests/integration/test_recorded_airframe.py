@@ -90,6 +90,7 @@ def test_the_sitl_writes_the_stations_vehicle_for_a_live_session(tmp_path, capsy
             "--station-config", str(toml)]  # fmt: skip
     assert cli_main(argv) == 0
     assert load_config(str(toml)).vehicle == station_vehicle(Airframe())
+    assert load_config(str(toml)).contact.floor_z_m == 0.0  # and where its floor is
     assert f"groundstation live --config {toml}" in capsys.readouterr().err
     argv[-1] = str(tmp_path / "no" / "such" / "dir.toml")
     argv[argv.index("--record") + 1] = str(tmp_path / "y.mcap")
