@@ -40,7 +40,9 @@ impact pushing back) has its odds multiplied by ``burst_odds``
 
 Observations
 ------------
-An event with ``p_false < reject_p_false`` yields a contact observation (y = 0) at the **onset**
+An event with ``p_false < reject_p_false`` that did not begin with the body at the floor (its
+lowest point within ``floor_margin_m`` of ``floor_z_m``, when the floor is known) yields a
+contact observation (y = 0) at the **onset**
 (where the body met the structure, before it compressed the guard and rebounded): the body point
 facing ``-n`` (``contact/vehicle.py``) at the pose of that instant, an internal one ``d_in``
 behind it (y = -1), and more pairs at ``contact_rate_hz`` while a long push lasts and the
