@@ -301,9 +301,9 @@ def run_sitl(args: argparse.Namespace) -> int:
 
 def _station_config(args: argparse.Namespace, sim: Simulation) -> None:
     """``--station-config``: the station's ``[vehicle]`` for this airframe and the floor's
-    height, written for a live
-    session's ``--config``; without it a live run of an airframe other than the default
-    cylinder says how to get it (the station cannot learn the body over MAVLink)."""
+    height, written for a live session's ``--config``; without it a live run of an airframe
+    other than the default cylinder says how to get it (the station cannot learn the body over
+    MAVLink)."""
     from groundstation.acquisition.sim_recording import station_config
 
     text = station_config(sim)

@@ -81,8 +81,8 @@ class ContactSettings:
         pushed about by the wind, and an impulse says neither which surface it met nor
         whether it met one. Farther below than the reach, the configured floor is not this
         frame's: nothing is rejected and the event says how far below
-        (``floor_clearance_m``). A SITL recording holds its floor (0); a motion-capture
-        frame whose ground plane was set on the floor has it at 0 too.
+        (``floor_clearance_m``). A SITL recording holds its scene's floor; a motion-capture
+        frame whose ground plane was set on the floor has it at 0.
     floor_margin_m : float
         ... the clearance above the floor within which a body counts as at it, metres.
     position_sigma_m : float

@@ -239,7 +239,7 @@ def map_scene(result, trajectory: np.ndarray):
     return vm.scene()
 
 
-def _rejected_text(events) -> str:
+def rejected_text(events) -> str:
     """How many candidates the detector rejected, and how many of them because they began with
     the body at the floor (``contact.floor_z_m``)."""
     rejected = [e for e in events if e.payload.get("state") == "rejected"]
@@ -448,7 +448,7 @@ def write_report_html(
             f"{len(rows)} ({n_flag} flagged"
             + (f", {n_wait} awaiting a second touch)" if n_wait else ")"),
         ),
-        ("candidates rejected", _rejected_text(result.events)),
+        ("candidates rejected", rejected_text(result.events)),
         ("observations", str(len(result.observations))),
         ("refits", f"{len(result.fits)} (median {_fmt(report.get('refit_s_median'))} s)"),
     ]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 from groundstation.bus.envelope import Envelope, Header
-from groundstation.pipeline.report import EventRow, _rejected_text, p_false_cell, truth_rows
+from groundstation.pipeline.report import EventRow, p_false_cell, rejected_text, truth_rows
 
 
 def test_the_summary_shows_what_accuracy_costs_and_where_the_map_invents_surface():
@@ -65,5 +65,5 @@ def test_the_summary_counts_the_candidates_rejected_at_the_floor():
     events = [_event("rejected", at_floor=True, floor_clearance_m=0.01),
               _event("rejected", at_floor=False, floor_clearance_m=0.6),
               _event("rejected"), _event("begin", at_floor=False)]  # fmt: skip
-    assert _rejected_text(events) == "3 (1 begun with the body at the floor)"
-    assert _rejected_text(events[1:]) == "2"
+    assert rejected_text(events) == "3 (1 begun with the body at the floor)"
+    assert rejected_text(events[1:]) == "2"
