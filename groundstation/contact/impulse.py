@@ -587,7 +587,7 @@ class ImpulseDetector:
         """Height of the body's lowest point above ``contact.floor_z_m`` at a buffer row,
         metres: NaN without a floor, a position or a finite attitude."""
         floor, p = self.settings.floor_z_m, self._c.p[row]
-        if not (math.isfinite(floor) and np.isfinite(p).all()):
+        if floor is None or not np.isfinite(p).all():
             return math.nan
         R = self._r_world(np.array([row]))[0] @ _C_FRD_FLU  # body FLU -> world ENU
         if not np.isfinite(R).all():

@@ -70,19 +70,18 @@ class ContactSettings:
         tuning flights' maps (``bench sessions --seeds 200-202``, README). It only looks
         back, so it costs no latency; the context is the earlier candidate's own
         ``p_false`` (``p_false_impulse``), so a burst cannot raise its successors in a chain.
-    floor_z_m : float
-        Height of the floor in the world frame, metres; NaN (the default) when the frame's
-        floor is unknown (a flight imported in a frame relative to its take-off point). A
-        candidate that begins while the vehicle's lowest point (the support point of its body
-        straight down, at the onset's position and attitude: ``vehicle.contact_offset`` with
-        the floor's normal) lies within ``floor_margin_m`` of the floor, or below it by no
-        more than the body's reach, is rejected (``state = "rejected"``, ``at_floor`` true):
-        a body at the floor may have hit the floor, and one lying there after a crash is
-        pushed about by the wind, and an impulse says neither which surface it met nor
-        whether it met one. Farther below than the reach, the configured floor is not this
-        frame's: nothing is rejected and the event says how far below
-        (``floor_clearance_m``). A SITL recording holds its scene's floor; a motion-capture
-        frame whose ground plane was set on the floor has it at 0.
+    floor_z_m : float or None
+        Height of the floor in the world frame, metres; None (the default, ``"none"`` in TOML) when
+        the frame's floor is unknown (a flight imported in a frame relative to its take-off point).
+        A candidate that begins while the vehicle's lowest point (the support point of its body
+        straight down, at the onset's position and attitude: ``vehicle.contact_offset`` with the
+        floor's normal) lies within ``floor_margin_m`` of the floor, or below it by no more than the
+        body's reach, is rejected (``state = "rejected"``, ``at_floor`` true): a body at the floor
+        may have hit the floor, and one lying there after a crash is pushed about by the wind, and
+        an impulse says neither which surface it met nor whether it met one. Farther below than the
+        reach, the configured floor is not this frame's: nothing is rejected and the event says how
+        far below (``floor_clearance_m``). A SITL recording holds its scene's floor; a
+        motion-capture frame whose ground plane was set on the floor has it at 0.
     floor_margin_m : float
         ... the clearance above the floor within which a body counts as at it, metres.
     position_sigma_m : float
@@ -179,7 +178,7 @@ class ContactSettings:
     reject_p_false: float = 0.98
     burst_window_s: float = 2.0
     burst_odds: float = 8.0
-    floor_z_m: float = math.nan
+    floor_z_m: float | None = None
     floor_margin_m: float = 0.05
     position_sigma_m: float = 0.003
     evidence_model: str = ""
@@ -245,10 +244,11 @@ class ContactSettings:
                 "contact.burst_window_s must be >= 0 and contact.burst_odds >= 1, got "
                 f"{self.burst_window_s!r}, {self.burst_odds!r}"
             )
-        if math.isinf(self.floor_z_m) or not self.floor_margin_m >= 0:
+        floor_known = self.floor_z_m is None or math.isfinite(self.floor_z_m)
+        if not floor_known or not self.floor_margin_m >= 0:
             raise ValueError(
-                "contact.floor_z_m must be finite or nan and contact.floor_margin_m >= 0, got "
-                f"{self.floor_z_m!r}, {self.floor_margin_m!r}"
+                "contact.floor_z_m must be a finite height or none, and contact.floor_margin_m "
+                f">= 0, got {self.floor_z_m!r}, {self.floor_margin_m!r}"
             )
         axis = self.thrust_axis
         if len(axis) != 3 or not all(math.isfinite(v) for v in axis) or math.hypot(*axis) < 0.5:

@@ -541,7 +541,7 @@ def test_a_candidate_begun_with_the_body_at_the_floor_is_rejected(clearance, at_
     data = flight(**touch(speed=0.6))
     t, _, _, pos = data
     on = int(np.searchsorted(t, int(1e9 + 3.0 * 1e9)))
-    floor = math.nan if clearance is None else float(pos[on, 2]) - 0.05 - clearance
+    floor = None if clearance is None else float(pos[on, 2]) - 0.05 - clearance
     det, obs = run(data, ContactSettings(floor_z_m=floor))
     ev = det.events[0]
     assert ev.at_floor is at_floor and ev.rejected is at_floor
@@ -555,7 +555,9 @@ def test_a_candidate_begun_with_the_body_at_the_floor_is_rejected(clearance, at_
 
 
 def test_floor_settings_are_checked():
-    with pytest.raises(ValueError, match="floor_z_m"):
-        ContactSettings(floor_z_m=math.inf)
+    for bad in (math.inf, math.nan):  # NaN would also make two equal settings unequal
+        with pytest.raises(ValueError, match="floor_z_m"):
+            ContactSettings(floor_z_m=bad)
+    assert ContactSettings() == ContactSettings()  # "unknown" is None, which equals itself
     with pytest.raises(ValueError, match="floor_margin_m"):
         ContactSettings(floor_margin_m=-0.01)
