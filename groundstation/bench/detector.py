@@ -27,6 +27,9 @@ Metrics per engine (and pooled), per detector variant (``--variant``):
 - placement: distance of each touch's first contact point to the true surface, median and p90;
 - real flights (no contact happened): candidates and contacts (``p_false <= 0.5``) per minute,
   per flight and pooled.
+- the burst context (:func:`burst_context`): of the candidates kept, per truth kind, how many
+  follow a clearly false candidate that pushed the same way (what ``contact.burst_odds`` acts
+  on) and how many precede one (what a look-ahead version of the rule would act on).
 
 Data licence: the aggressive_flight data is CC BY 4.0, Hurwitz and Klein, "Quadrotor Dead Reckoning
 with Multiple Inertial Sensors"; the attribution is printed and written with every result.
@@ -228,6 +231,13 @@ class LabelledEvent:
         Distance of the event's first contact point to the true surface (NaN: none placed).
     point_m : float
         Distance of that point to the truth contact point.
+    onset_s : float
+        Data time of the onset, seconds on the log's station axis (NaN: unknown).
+    normal_x, normal_y, normal_z : float
+        The impulse's direction, the event's outward normal (world frame; NaN: unknown).
+    p_false_impulse : float
+        The evidence model's ``p_false`` on the impulse alone, before the burst context
+        (``contact.burst_odds``) raised it (NaN: not reported).
     """
 
     flight: str
@@ -242,6 +252,11 @@ class LabelledEvent:
     cluster: bool = False
     surface_m: float = math.nan
     point_m: float = math.nan
+    onset_s: float = math.nan
+    normal_x: float = math.nan
+    normal_y: float = math.nan
+    normal_z: float = math.nan
+    p_false_impulse: float = math.nan
 
     @property
     def false_by_evidence(self) -> bool:
@@ -328,6 +343,9 @@ def label_run(run: Any, engine: str) -> tuple[list[LabelledEvent], list[TruthIte
                 cluster=c.get("cluster") not in (None, -1) if kind == "gust" else False,
                 surface_m=surf,
                 point_m=pt,
+                onset_s=int(e.header.source_ns) / 1e9,
+                **_normal_fields(e.arrays.get("normal")),
+                p_false_impulse=_float_or_nan(e.payload.get("p_false_impulse")),
             )
         )
     items = [
@@ -340,6 +358,69 @@ def label_run(run: Any, engine: str) -> tuple[list[LabelledEvent], list[TruthIte
         for k, c in enumerate(contacts)
     ]  # fmt: skip
     return events, items
+
+
+def _float_or_nan(v: Any) -> float:
+    return float(v) if isinstance(v, int | float) else math.nan
+
+
+def _normal_fields(normal: Any) -> dict[str, float]:
+    """``normal_x/y/z`` of a ``contact.event``'s ``normal`` array (NaN when absent or not 3)."""
+    n = np.asarray(normal if normal is not None else (), dtype=float).reshape(-1)
+    if n.size != 3:
+        n = np.full(3, math.nan)
+    return {"normal_x": float(n[0]), "normal_y": float(n[1]), "normal_z": float(n[2])}
+
+
+# --- the burst context --------------------------------------------------------------------------
+
+
+def burst_context(
+    events: Sequence[LabelledEvent], window_s: float, line: float
+) -> dict[str, dict[str, int]]:
+    """How the detector's burst context splits by what the candidates really were.
+
+    The shipped rule (``contact.burst_odds``, ``contact/impulse.py``) looks back: a candidate
+    whose onset follows, within ``window_s``, the onset of one the evidence model put at
+    ``line`` or more on its own impulse (``p_false_impulse``, else ``p_false``) that pushed the
+    same way (normals less than 90 degrees apart), on the same flight, has its odds raised. The
+    same test looking *ahead* (such a candidate within ``window_s`` after it) is what a
+    detector would need to wait for, or a map would need the rejected candidates for; counting
+    both says what each would act on before anyone builds it.
+
+    Returns
+    -------
+    dict kind -> {"kept", "before", "after", "after_only"}
+        Per truth kind (touch, slow_touch, gust, ground, none), the candidates the detector
+        kept (not rejected: they reach the map) and how many of them have such a candidate
+        before, after, and after but not before.
+    """
+    by_flight: dict[str, list[LabelledEvent]] = {}
+    for e in events:
+        by_flight.setdefault(e.flight, []).append(e)
+    out: dict[str, dict[str, int]] = {}
+    for evs in by_flight.values():
+        t = np.array([e.onset_s for e in evs], dtype=float)
+        n = np.array([(e.normal_x, e.normal_y, e.normal_z) for e in evs], dtype=float)
+        p_own = np.array(
+            [e.p_false_impulse if math.isfinite(e.p_false_impulse) else e.p_false for e in evs]
+        )
+        clear = (p_own >= line) & np.isfinite(t) & np.all(np.isfinite(n), axis=1)
+        for i, e in enumerate(evs):
+            row = out.setdefault(e.kind, {"kept": 0, "before": 0, "after": 0, "after_only": 0})
+            if e.rejected:
+                continue
+            row["kept"] += 1
+            if not (math.isfinite(t[i]) and np.all(np.isfinite(n[i]))):
+                continue
+            same = clear & (n @ n[i] > 0.0)
+            same[i] = False
+            before = bool(np.any(same & (t < t[i]) & (t >= t[i] - window_s)))
+            after = bool(np.any(same & (t > t[i]) & (t <= t[i] + window_s)))
+            row["before"] += before
+            row["after"] += after
+            row["after_only"] += after and not before
+    return out
 
 
 # --- the evidence model -------------------------------------------------------------------------
@@ -619,6 +700,24 @@ def markdown(results: dict[str, Any]) -> str:
                 for b in fb
             ]
             out.append(f"| {engine} | " + " | ".join(cells) + " |")
+        ctx = res.get("burst_context")
+        if ctx:
+            out.append(
+                f"\nBurst context (window {res['burst_window_s']:g} s, line "
+                f"{res['burst_line']:g}): of the candidates kept, how many follow (before: the "
+                "shipped rule) or precede (after: a look-ahead rule, not built) one at the line "
+                "or more that pushed the same way:\n"
+            )
+            out.append("| engine | kind | kept | before | after | after only |")
+            out.append("|---|---|---|---|---|---|")
+            for engine, kinds in ctx.items():
+                for kind in ("touch", "slow_touch", "gust", "ground", "none"):
+                    r = kinds.get(kind)
+                    if r:
+                        out.append(
+                            f"| {engine} | {kind} | {r['kept']} | {r['before']} | "
+                            f"{r['after']} | {r['after_only']} |"
+                        )
         real = res.get("real")
         if real and real["flights"]:
             out.append("\nReal contact-free flights (every contact is false):\n")
@@ -788,6 +887,17 @@ def run_real(
             ev, _it, dur = done[i * len(logs) + j]
             rows.append((Path(log).stem, dur, ev))
         out[v.name] = real_flight_rates(rows)
+    return out
+
+
+def burst_context_by_engine(
+    events: Sequence[LabelledEvent], engines: Sequence[str], window_s: float, line: float
+) -> dict[str, dict[str, dict[str, int]]]:
+    """:func:`burst_context` per engine and pooled."""
+    out = {e: burst_context([x for x in events if x.engine == e], window_s, line)
+           for e in engines}  # fmt: skip
+    if len(engines) > 1:
+        out["pooled"] = burst_context(events, window_s, line)
     return out
 
 

@@ -139,6 +139,23 @@ def _csv_list(text: str | None, default: Sequence[str]) -> list[str]:
     return [v.strip() for v in (text.split(",") if text else default) if v.strip()]
 
 
+def _burst_context(
+    events: Sequence, engines: Sequence[str], config: str | None, overrides: Sequence[str]
+) -> dict:
+    """The burst-context table of one detector variant, with the window and line its own
+    settings use (``contact.burst_window_s``, ``contact.reject_p_false``)."""
+    from groundstation.config import load_config
+
+    c = load_config(config, list(overrides)).contact
+    return {
+        "burst_window_s": c.burst_window_s,
+        "burst_line": c.reject_p_false,
+        "burst_context": detector_bench.burst_context_by_engine(
+            events, engines, c.burst_window_s, c.reject_p_false
+        ),
+    }
+
+
 def run_detector(args: argparse.Namespace) -> int:
     """Generate the flights, (fit the evidence model), run every variant, write the tables."""
     db = detector_bench
@@ -200,6 +217,7 @@ def run_detector(args: argparse.Namespace) -> int:
                 "overrides": list(v.overrides),
                 "engines": db.by_engine(*labelled[v.name], engines),
                 "real": real.get(v.name),
+                **_burst_context(labelled[v.name][0], engines, args.config, v.overrides),
             }
             for v in variants
         },

@@ -222,3 +222,48 @@ def test_bench_detector_sees_the_events_replay_publishes_on_a_real_flight(extern
     low = ("contact.lateral_threshold_g=0.4", "contact.axial_threshold_g=0.5")
     labelled = assert_bench_sees_what_replay_publishes(log, "real", low)
     assert all(lab.kind == "none" for lab in labelled)  # no truth on a real flight
+
+
+def _pushed(kind, t, normal, p, *, flight="f", rejected=False, p_imp=math.nan):
+    nx, ny, nz = normal
+    return db.LabelledEvent(
+        flight, "simple", kind, p, {}, rejected, onset_s=t,
+        normal_x=nx, normal_y=ny, normal_z=nz, p_false_impulse=p_imp,
+    )  # fmt: skip
+
+
+def test_burst_context_counts_each_side_by_direction_window_and_flight():
+    east, west, north = (1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0)
+    events = [
+        _pushed("gust", 10.0, east, 0.99, rejected=True),  # the clearly false push
+        _pushed("gust", 9.0, east, 0.10),  # 1 s before it, same way: context after it
+        _pushed("gust", 11.5, (0.8, 0.6, 0.0), 0.10),  # 1.5 s after, 37 deg off: before
+        _pushed("touch", 10.5, west, 0.02),  # pushed back: no context either way
+        _pushed("touch", 11.0, north, 0.02),  # 90 deg off: not the same way
+        _pushed("touch", 12.5, east, 0.02),  # 2.5 s after: outside the window
+        _pushed("touch", 10.8, east, 0.02, flight="g"),  # another flight's clock
+        # raised by the rule itself (p_false at the line), yet its own impulse says little:
+        _pushed("gust", 13.0, east, 0.985, p_imp=0.30),
+        _pushed("slow_touch", 12.2, east, 0.05),  # 0.8 s before that one: it gives no context
+    ]
+    ctx = db.burst_context(events, window_s=2.0, line=0.98)
+    assert ctx["gust"] == {"kept": 3, "before": 1, "after": 1, "after_only": 1}
+    assert ctx["touch"] == {"kept": 4, "before": 0, "after": 0, "after_only": 0}
+    assert ctx["slow_touch"] == {"kept": 1, "before": 0, "after": 0, "after_only": 0}
+    # the line and the window are the caller's
+    assert db.burst_context(events, window_s=3.0, line=0.98)["touch"]["before"] == 1
+    assert db.burst_context(events, window_s=2.0, line=0.3)["slow_touch"]["after"] == 1
+
+
+def test_burst_context_is_in_the_bench_tables():
+    events = [
+        _pushed("gust", 10.0, (1.0, 0.0, 0.0), 0.99, rejected=True),
+        _pushed("gust", 9.0, (1.0, 0.0, 0.0), 0.10),
+    ]
+    res = {"variants": {"impulse": {
+        "engines": {},
+        "burst_window_s": 2.0, "burst_line": 0.98,
+        "burst_context": db.burst_context_by_engine(events, ["simple"], 2.0, 0.98),
+    }}}  # fmt: skip
+    md = db.markdown(res)
+    assert "| simple | gust | 1 | 0 | 1 | 1 |" in md
