@@ -349,15 +349,21 @@ class ImpulseDetector:
         return base, n
 
     def _process(self, final: bool) -> list[Observation]:
+        """Decide the samples held once a batch is full, or at once when a closed impulse's
+        evidence window has arrived (its event is not kept waiting for a batch), then the
+        events whose windows are complete. Samples and events come out in one data-time
+        order, whatever the batch: an event's observations after the free space sampled
+        before its evidence window ended, before the free space sampled after (``_decide``)."""
         c = self._c
         if c.n == 0:
             return []
         lo = self._decided - c.base
         out: list[Observation] = []
-        if c.n - lo >= (1 if final else self._batch):
+        due = bool(self._closed) and int(c.t[c.n - 1]) >= self._closed[0].need_ns
+        if c.n - lo >= (1 if final or due else self._batch):
             out = self._decide(lo, c.n, final)
             self._trim()
-        if self._closed and (final or int(c.t[c.n - 1]) >= self._closed[0].need_ns):
+        if self._closed and final:
             out += self._finalize(final)
         return out
 
@@ -378,6 +384,8 @@ class ImpulseDetector:
         for k in range(idx.size):
             i = int(idx[k])  # buffer row
             ti = int(t[k])
+            if self._closed and ti >= self._closed[0].need_ns:
+                out += self._finalize_until(ti)
             ev = self._open
             if ev is None:
                 rearmed = ti >= self._refractory_until or score[k] > self._refractory_peak
@@ -395,6 +403,13 @@ class ImpulseDetector:
                 self._open = None
         self._decided = hi + c.base
         self.last_score = float(score[-1])
+        return out
+
+    def _finalize_until(self, t_ns: int) -> list[Observation]:
+        """Decide the closed impulses whose evidence window ended by ``t_ns`` (data time)."""
+        out: list[Observation] = []
+        while self._closed and self._closed[0].need_ns <= t_ns:
+            out += self._evidence(self._closed.pop(0))
         return out
 
     def _finalize(self, final: bool) -> list[Observation]:

@@ -221,6 +221,19 @@ def test_batching_does_not_change_anything():
     ]
 
 
+@pytest.mark.parametrize("quiet_s", [0.0, 0.05, 0.1, 0.5])
+def test_batching_does_not_change_the_order_of_free_space_and_contacts(quiet_s):
+    # A fast vehicle (a free-space point every 0.05 s of path) and a short pause: free space is
+    # due while an impulse waits for its evidence window, on either side of where it ends.
+    s = ContactSettings(quiet_s=quiet_s)
+    data = flight(duration=8.0, impulses=[(3.0, 0.022, 0.6, WALL), (5.0, 0.03, 0.8, (0, 1, 0))],
+                  v0=(-2.0, 0.0, 0.0))  # fmt: skip
+    runs = [run(data, settings=s, batch=b) for b in (1, 7, 64, 97)]
+    seqs = [[(o.id, o.t_ns, o.label, o.event_id) for o in obs] for _, obs in runs]
+    assert all(seq == seqs[0] for seq in seqs[1:])
+    assert sum(o[2] == LABEL_SURFACE for o in seqs[0]) >= 2  # both impulses made contacts
+
+
 def test_without_a_pose_the_event_is_kept_but_nothing_is_placed():
     det, obs = run(flight(**touch(speed=0.5)), pose=False)
     assert len(det.events) == 1 and obs == []
