@@ -53,7 +53,9 @@ space (y = +1) is the vehicle position every ``1 / external_rate_hz`` of data ti
 ``external_spacing_m`` of path, not during an impulse nor within ``quiet_s`` after one.
 
 Determinism: every filtered value is a difference of prefix sums accumulated sample by sample,
-so the result does not depend on how the samples were batched (live or replay, any speed).
+so the result does not depend on how the samples were batched (live or replay, any speed); and
+an impulse is decided at the first sample past its evidence window, in the same loop that
+samples free space, so free space and contacts come out in one data-time order too.
 """
 
 from __future__ import annotations
