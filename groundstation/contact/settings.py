@@ -179,10 +179,10 @@ class ContactSettings:
         touch-drawn ones of 0.08-0.10 m^2 grown just over the line. Reporting seeds 108-109,
         judged once: flights over 0.1 m^2 6 / 4 of 22 meshed (two MuJoCo docks' patches of a
         touch placed off the surface, 0.21-0.23 m^2, gone: one touch flagged, one patch shrunk
-        under the free space sampled after it), largest patch mean 0.072 / 0.060 m^2 (worst 0.34 / 0.45: a MuJoCo pier
-        flight whose touches were placed off the surface), touches flagged 14 / 18 of 551
-        (MuJoCo's 11 / 15 of 259), missing within 0.2 m by area 1.8 / 2.0 %, every gust
-        flagged at both.
+        under the free space sampled after it), largest patch mean 0.072 / 0.060 m^2 (worst
+        0.34 / 0.45: a MuJoCo pier flight whose touches were placed off the surface), touches
+        flagged 14 / 18 of 551 (MuJoCo's 11 / 15 of 259), missing within 0.2 m by area 1.8 /
+        2.0 %, every gust flagged at both.
     """
 
     detector: Literal["impulse", "threshold"] = "impulse"
