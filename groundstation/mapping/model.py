@@ -111,6 +111,7 @@ def training_policy(
         plane_guard_solid_m=mapping.plane_guard_solid_m,
         settled_voxel_m=mapping.settled_voxel_m,
         companion_s=mapping.companion_s,
+        body_clearance=mapping.body_clearance,
         lone_reach_m=mapping.lone_reach_m,
     )
 

@@ -114,6 +114,16 @@ class MappingSettings:
         flights, nothing worse). Relabelling those samples to the clearance the body gives them
         (0.25 for 5 cm) instead cleared the same touches but let the field sag under the pier's
         deck (a control's patch 0.17 -> 0.36 m²): the +1 there is true free space.
+    body_clearance : bool
+        A free-space sample within ``companion_s`` of an event, within the body's reach of its
+        contacts and in front of their plane by less than the body's own extent along the
+        normal (its level inner cylinder's least support distance over the normals within 20
+        degrees of the contact's, less ``sweep_tolerance_m``: 0.17 m for the cylinder's side
+        touch, 0.02 m for its top touch) is no companion: the vehicle's body there reached past
+        that plane beside the contact, which the body of a true touch cannot, and it refutes
+        the event as the swept volume does (``sweep_llr``; the swept test itself skips the
+        ``sweep_exclude_s`` round the event), unless a touch of another event that the
+        detector believes shows the same plane next to it (``mapping/training.py``).
     mixture_max_iter : int
         Iterations of a cold mixture fit at most (warm refits: ``refit_max_iter``).
     learn_min_events : int
@@ -434,6 +444,7 @@ class MappingSettings:
     sweep_tolerance_m: float = 0.03
     sweep_disc_m: float = 0.1
     companion_s: float = 0.5
+    body_clearance: bool = True
     flag_tol: float = 5e-3
     flag_inside: bool = False
     mixture_max_iter: int = 12

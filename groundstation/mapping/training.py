@@ -18,7 +18,15 @@
   tests it (``Groups.companion``), kept in the fit (it is true free space either way). Samples
   behind the plane are not companions: they are evidence against the contact; nor are samples
   as far in front as +1 says (a contact on the vehicle's side). Within 0.5 s by default
-  (``MappingSettings.companion_s``).
+  (``MappingSettings.companion_s``). Nor is a sample nearer the plane than the body itself
+  keeps its centre from a surface it touches (``body_clearance``: the least support distance
+  of the body's level inner cylinder over the normals within ``NORMAL_ERROR_DEG`` of the
+  contact's, less ``sweep_tolerance_m``; 0.17 m for the cylinder's side touch, 0.02 m for its
+  top touch): the body there reached past the plane within its own reach of the contact, which
+  the body of a true touch cannot. That *crosses* the event, with the swept volume's evidence
+  (below), inside the time the swept test skips; unless a touch of another event that the
+  detector believes shows the same plane within twice ``sweep_disc_m`` (then the surface is
+  there, and the body was not level: a vehicle tumbling along a deck's side after a hard hit).
 - **Noise.** A contact or internal row's variance is ``contact_noise^2 + (slope * sigma_m)^2``
   (``sigma_m``: the detector's placement uncertainty in metres; ``slope``: the potential's change
   per metre, from 0 at the surface to ``inside_value`` at ``d_in`` behind it); a free row's is
@@ -122,6 +130,9 @@ PLANE_BEND_RATIO = 1.25
 #: scale, and on the paper-like 3D set it was what flagged an isolated gust there (as a
 #: companion: that gust kept, largest phantom patch 0.19 -> 0.53 m²).
 COMPANION_CLEARANCE = 0.75
+#: How far a contact's normal may lie off the true one, degrees (the detector averages the
+#: body's support points over 20 degrees round it: ``contact.normal_spread_deg``).
+NORMAL_ERROR_DEG = 20.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,6 +168,7 @@ class TrainingPolicy:
     plane_guard_solid_m: float = 0.5
     settled_voxel_m: float = 0.1
     companion_s: float = 0.0
+    body_clearance: bool = False
     lone_reach_m: float = 0.0
 
 
@@ -456,21 +468,24 @@ def build_training_set(
     np.maximum.at(t_hi, g_of, col.t[shape])
     t_span = list(zip(t_lo.tolist(), t_hi.tolist(), strict=True))
     n_rows = sum(len(x) for x in rows_X)
+    guard = prior <= p.plane_max_p_false  # touches whose plane may say where a surface ends
     companion = None
+    crossed = np.zeros(G, dtype=bool)
     if p.companion_s > 0:
         companion = np.full(n_rows, -1, dtype=np.int64)
-        companion[: free_rows.size] = _companions(
+        companion[: free_rows.size], crossed = _companions(
             col.X[free_rows], col.t[free_rows], cen, nrm, t_lo, t_hi, is_settled,
-            p.body_reach_m, COMPANION_CLEARANCE / slope,
-            p.companion_s,
+            p.body_reach_m, COMPANION_CLEARANCE / slope, p.companion_s,
+            _body_extent(nrm, p) if p.body_clearance and d == 3 else None,
         )  # fmt: skip
+        crossed &= ~_coplanar_vouched(cen, nrm, guard, 2.0 * p.sweep_disc_m)
     burst = _bursts(t_span, list(cen), p)
     size = np.bincount(burst, minlength=int(burst.max(initial=-1)) + 1) if burst.size else burst
     clustered = size[burst] >= p.burst_events_min if burst.size else np.zeros(0, dtype=bool)
     clustered &= prior >= p.burst_min_p_false  # impacts the detector vouches for: a pilot tapping
     is_free = col.label > 0
-    guard = prior <= p.plane_max_p_false  # touches whose plane may say where a surface ends
     swept = _swept(contacts, cen, nrm, t_span, col.X[is_free], col.t[is_free], guard, p)
+    swept |= crossed
     return TrainingSet(
         X=np.concatenate(rows_X).reshape(-1, d),
         directions=np.concatenate(dirs).reshape(-1, d),
@@ -658,15 +673,23 @@ def _bursts(
 def _companions(
     X: np.ndarray, t: np.ndarray, centres: np.ndarray, normals: np.ndarray,
     t_lo: np.ndarray, t_hi: np.ndarray, settled: np.ndarray, reach: float, clearance: float,
-    window_s: float,
-) -> np.ndarray:  # fmt: skip
+    window_s: float, extent: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """The group each free row ``X`` (taken at ``t``) is a companion of, -1 for none: the
     nearest in time of the unsettled groups with a contact plane whose time span it lies
     within ``window_s`` of, in front of that plane by less than ``clearance`` and within
-    ``reach`` (the body's) of its contacts' centroid (module docstring)."""
+    ``reach`` (the body's) of its contacts' centroid (module docstring); and (G,) bool, the
+    groups whose plane the body *crossed* there.
+
+    With ``extent`` ((G,) metres: :func:`_body_extent`, the least distance the body's centre
+    keeps in front of a plane it touches, less the tolerance), a row nearer a group's plane
+    than that is no companion of it: the body at that row reached past the plane within its
+    own reach of the contact, which the body of a true touch cannot, and the group is crossed.
+    """
     out = np.full(X.shape[0], -1, dtype=np.int64)
+    crossed = np.zeros(len(centres), dtype=bool)
     if X.shape[0] == 0:
-        return out
+        return out, crossed
     best = np.full(X.shape[0], np.inf)
     w = int(window_s * 1e9)
     ok = np.any(normals != 0.0, axis=1) & np.all(np.isfinite(centres), axis=1) & ~settled
@@ -677,10 +700,62 @@ def _companions(
         dx = X[near] - centres[g]
         ahead = dx @ normals[g]
         mine = (ahead > 0.0) & (ahead < clearance) & (np.linalg.norm(dx, axis=1) <= reach)
+        if extent is not None:
+            past = mine & (ahead < extent[g])
+            crossed[g] = bool(past.any())
+            mine &= ~past
         gap = np.maximum(t_lo[g] - t[near], t[near] - t_hi[g]).astype(np.float64)
         take = mine & (gap < best[near])
         out[near[take]] = g
         best[near[take]] = gap[take]
+    return out, crossed
+
+
+def _body_extent(normals: np.ndarray, p: TrainingPolicy) -> np.ndarray:
+    """(G,) metres: how far in front of a contact's tangent plane (unit outward ``normals``,
+    (G, 3); zero rows: none) the vehicle's centre at least stays while its body touches
+    there, less ``sweep_tolerance_m`` (the contact's placement error): the support distance of
+    the body's inner cylinder (``body_radius_m`` across, ``body_half_height_m`` up and down,
+    level), which the body fills whatever its yaw, least over the directions within
+    ``NORMAL_ERROR_DEG`` of the normal (a contact under a deck whose normal the detector tilts
+    by 10 degrees would otherwise ask for its centre 3 cm lower). The cylinder's side touch
+    keeps its centre 0.2 m in front; its top or bottom touch, 0.05 m."""
+    n = np.asarray(normals, dtype=np.float64)
+    phi = np.arccos(np.clip(np.abs(n[:, 2]), 0.0, 1.0))  # from the vertical, in [0, pi/2]
+    err = math.radians(NORMAL_ERROR_DEG)
+    psi = np.clip(phi[:, None] + np.linspace(-err, err, 9)[None, :], 0.0, math.pi / 2)
+    support = p.body_radius_m * np.sin(psi) + p.body_half_height_m * np.cos(psi)
+    return np.where(n.any(axis=1), support.min(axis=1) - p.sweep_tolerance_m, -np.inf)
+
+
+def _coplanar_vouched(
+    centres: np.ndarray, normals: np.ndarray, guard: np.ndarray, radius: float
+) -> np.ndarray:
+    """(G,) bool: groups another ``guard`` group vouches for: a contact centroid within
+    ``radius`` of theirs, each within twice ``PLANE_BEYOND_TOL_M`` of the other's plane and
+    with a normal within ``NORMAL_ERROR_DEG`` of theirs (the same face). Where two touches
+    the detector believes show one plane, the surface is there, and a body sampled nearer it
+    than the level body can be was not level (a vehicle tumbling along a deck's side after a
+    hard hit)."""
+    G = len(centres)
+    out = np.zeros(G, dtype=bool)
+    ok = np.flatnonzero(np.all(np.isfinite(centres), axis=1) & np.any(normals != 0.0, axis=1))
+    if ok.size < 2 or radius <= 0:
+        return out
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(centres[ok]).query_pairs(radius, output_type="ndarray")
+    if not len(pairs):
+        return out
+    a, b = ok[pairs[:, 0]], ok[pairs[:, 1]]
+    off = centres[b] - centres[a]
+    same = (
+        (np.einsum("ij,ij->i", normals[a], normals[b]) >= math.cos(math.radians(NORMAL_ERROR_DEG)))
+        & (np.abs(np.einsum("ij,ij->i", off, normals[a])) <= 2.0 * PLANE_BEYOND_TOL_M)
+        & (np.abs(np.einsum("ij,ij->i", off, normals[b])) <= 2.0 * PLANE_BEYOND_TOL_M)
+    )
+    out[a[same & guard[b]]] = True
+    out[b[same & guard[a]]] = True
     return out
 
 

@@ -466,6 +466,103 @@ def test_the_vehicle_at_a_touch_is_its_companion(window):
     assert ts.y[:5].tolist() == [1.0] * 5
 
 
+@pytest.mark.parametrize(
+    ("normal", "sample", "crossed"),
+    [
+        ("side", [-0.05, 0.12, 1.0], True),  # 0.05 m in front of a wall touched on the side
+        ("side", [-0.22, 0.05, 1.0], False),  # the centre where the body keeps it: 0.2 m
+        ("side", [0.05, 0.05, 1.0], False),  # behind the plane: the GP's evidence, not this
+        ("top", [0.05, 0.0, 1.05], False),  # the cylinder resting on the top: 0.05 m up
+        ("top", [0.05, 0.0, 1.01], True),  # its centre 1 cm above the top: the body is in it
+    ],
+)
+@pytest.mark.parametrize("on", [True, False])
+def test_a_body_nearer_a_contacts_plane_than_it_can_be_crosses_the_event(
+    normal, sample, crossed, on
+):
+    """A free-space sample 0.15 s after a touch (inside the time the swept test skips), within
+    the body's reach of the contact: where the cylinder (r 0.2 m, 0.05 m half height) could not
+    have its centre at a true touch, nearer the contact's plane than its own extent along the
+    normal less the tolerance (0.17 m side, 0.02 m top), it is no companion and the event is
+    crossed (``swept``, ``sweep_llr`` nats); elsewhere a sample in front within the clearance
+    stays a companion (``mapping.body_clearance`` off: always, as before)."""
+    policy = TrainingPolicy(companion_s=0.5, free_voxel_m=0.01, body_radius_m=0.2,
+                            body_half_height_m=0.05, sweep_tolerance_m=0.03,
+                            body_clearance=on)  # fmt: skip
+    n = np.array([-1.0, 0.0, 0.0]) if normal == "side" else np.array([0.0, 0.0, 1.0])
+    c = np.array([0.0, 0.0, 1.0])
+    o = [
+        Observation(0, int(10e9), c, 0.0, n, 0, 0.0, p_false=0.05, sigma_m=0.01),
+        Observation(1, int(10e9), c - 0.1 * n, -1.0, n, 0, 0.0, p_false=0.05, sigma_m=0.01),
+        obs(2, 10.15, sample, 1, -1),
+    ]
+    ts = build_training_set(o, policy)
+    hit = crossed and on
+    assert bool(ts.swept[0]) == hit
+    assert ts.groups.extra_llr[0] == (policy.sweep_llr if hit else 0.0)
+    ahead = float((np.asarray(sample) - c) @ n)
+    assert ts.groups.companion[0] == (0 if 0 < ahead < 0.15 and not hit else -1)
+
+
+@pytest.mark.parametrize(
+    ("other_normal", "other_p_false", "crossed"),
+    [
+        ([-1.0, 0.0, 0.0], 0.02, False),  # a believed touch on the same face: the body tumbled
+        ([-0.97, 0.0, 0.26], 0.02, False),  # ... its normal 15 degrees off: still that face
+        ([-1.0, 0.0, 0.0], 0.8, True),  # a doubted event vouches for nothing
+        ([0.0, -1.0, 0.0], 0.02, True),  # another face (a corner): no vouching
+    ],
+)
+def test_a_believed_touch_on_the_same_plane_vouches_for_a_crossed_event(
+    other_normal, other_p_false, crossed
+):
+    """The side touch of the test above, crossed by a sample 0.05 m in front of its plane, and
+    a second event 0.06 m along the wall (within twice ``sweep_disc_m``): where that one is a
+    touch the detector believes on the same plane, the wall is there and the body was not
+    level; otherwise the crossing stands."""
+    policy = TrainingPolicy(companion_s=0.5, free_voxel_m=0.01, body_radius_m=0.2,
+                            body_half_height_m=0.05, sweep_tolerance_m=0.03,
+                            body_clearance=True, plane_max_p_false=0.3,
+                            sweep_disc_m=0.1)  # fmt: skip
+    n = np.array([-1.0, 0.0, 0.0])
+    m = np.asarray(other_normal)
+    c, c2 = np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.06, 1.0])
+    o = [
+        Observation(0, int(10e9), c, 0.0, n, 0, 0.0, p_false=0.05, sigma_m=0.01),
+        Observation(1, int(10e9), c - 0.1 * n, -1.0, n, 0, 0.0, p_false=0.05, sigma_m=0.01),
+        Observation(2, int(30e9), c2, 0.0, m, 1, 0.0, p_false=other_p_false, sigma_m=0.01),
+        Observation(
+            3, int(30e9), c2 - 0.1 * m, -1.0, m, 1, 0.0, p_false=other_p_false, sigma_m=0.01
+        ),  # fmt: skip
+        obs(4, 10.15, [-0.05, -0.12, 1.0], 1, -1),
+    ]
+    ts = build_training_set(o, policy)
+    assert bool(ts.swept[0]) == crossed
+
+
+def test_the_body_extent_is_the_least_support_within_the_normal_error():
+    """``_body_extent`` against a dense sampling of the directions within
+    ``NORMAL_ERROR_DEG`` of each normal: the least support distance of the level inner
+    cylinder over them, less the tolerance."""
+    from groundstation.mapping.training import NORMAL_ERROR_DEG, _body_extent
+
+    rng = np.random.default_rng(3)
+    policy = TrainingPolicy(body_radius_m=0.18, body_half_height_m=0.025, sweep_tolerance_m=0.03)
+    normals = rng.normal(size=(40, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals[0] = [0.0, 0.0, 1.0]
+    got = _body_extent(normals, policy)
+    cone = math.cos(math.radians(NORMAL_ERROR_DEG))
+    v = rng.normal(size=(200_000, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    for k, n in enumerate(normals):
+        w = v[v @ n >= cone]
+        support = 0.18 * np.hypot(w[:, 0], w[:, 1]) + 0.025 * np.abs(w[:, 2])
+        assert got[k] == pytest.approx(support.min() - 0.03, abs=2e-3)
+    assert got[0] == pytest.approx(0.025 - 0.03)  # straight up: the half height
+    assert _body_extent(np.zeros((1, 3)), policy)[0] == -np.inf  # no normal: no extent
+
+
 def test_a_burst_is_evidence_against_its_events_unless_the_detector_vouches_for_them():
     """Three events 1 s and 0.1 m apart form a burst: ``burst_llr`` for 'false' on each whose
     prior is at least ``burst_min_p_false`` (a gust cluster, or events of unknown origin), none
