@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import faulthandler
 import importlib
+import signal
 import sys
 from collections.abc import Callable, Sequence
 
@@ -154,8 +156,19 @@ def _top_usage() -> str:
     return "\n".join(lines)
 
 
+def _stacks_on_sigusr1() -> None:
+    """`kill -USR1 PID` prints every thread's stack to stderr and lets the command go on: what a
+    process that does not stop when asked is doing (README, Reliability). Not where stderr has
+    no file descriptor (``main`` called in a process whose stderr is captured)."""
+    try:
+        faulthandler.register(signal.SIGUSR1, all_threads=True, chain=False)
+    except (OSError, ValueError, AttributeError, RuntimeError):  # io.UnsupportedOperation: fileno
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    _stacks_on_sigusr1()
     if not argv or argv[0] in ("-h", "--help"):
         print(_top_usage())
         return 0 if argv else 2

@@ -71,11 +71,15 @@ def start(argv: list[str], out: Path, err: Path) -> subprocess.Popen:
 
 
 def stop(proc: subprocess.Popen, sig: int = signal.SIGINT, timeout: float = 60) -> int:
+    """Send ``sig`` and wait; a command still running after ``timeout`` is first asked for its
+    stacks (SIGUSR1: to its stderr, which the caller's failure message shows), then killed."""
     if proc.poll() is None:
         proc.send_signal(sig)
         try:
             proc.wait(timeout)
         except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGUSR1)
+            time.sleep(2.0)
             proc.kill()
             proc.wait(10)
     return proc.returncode

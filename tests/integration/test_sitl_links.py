@@ -309,16 +309,20 @@ def test_corrupted_bytes_on_the_pty_path_are_counted_and_skipped():
     assert len(imu) > 1000
 
 
-def test_sigterm_stops_cleanly_and_writes_truth(tmp_path):
+def test_sigusr1_shows_the_stacks_and_sigterm_stops_cleanly_and_writes_truth(tmp_path):
     truth = tmp_path / "truth.json"
     with sitl("--link", "pty", "--pilot", "script:survey", "--scene", "pillar", "--speed", "4",
               "--truth", str(truth), "--gust-rate", "30") as proc:  # fmt: skip
         first_line(proc, "SITL MAVLink on ")
-        time.sleep(1.5)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGUSR1)  # every command: the stacks to stderr, then go on
+        time.sleep(1.0)
+        assert proc.poll() is None
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(15) == 0
         err = proc.stderr.read()
     assert "stopped (SIGTERM)" in err
+    assert "Current thread" in err and 'File "' in err and "groundstation" in err, err[-2000:]
     doc = json.loads(truth.read_text())
     assert doc["vehicle"] == {**doc["vehicle"], "radius": 0.2, "height": 0.1}
     assert doc["duration"] > 1.0
