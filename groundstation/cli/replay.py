@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import signal
 import sys
 import time
 from pathlib import Path
@@ -256,14 +257,27 @@ class _WebView:
         self.stream.flush()
 
     def serve(self, seconds: float | None) -> None:
+        """Serve until ``seconds`` pass, the server exits, or SIGINT / SIGTERM arrives. Both
+        signals get this process's own handler for the while, whatever it inherited: a replay
+        started as a shell's background job ignores SIGINT from birth and would otherwise serve
+        on, and the default SIGTERM would end it without closing the stream and the .rrd."""
         how = "Ctrl-C to stop" if seconds is None else f"for {seconds:g} s"
         print(f"replay: serving {self.server.web_url} ({how})", file=sys.stderr, flush=True)
         end = math.inf if seconds is None else time.monotonic() + seconds
+        stopped: list[int] = []
+        previous = {
+            sig: signal.signal(sig, lambda signum, _frame: stopped.append(signum))
+            for sig in (signal.SIGINT, signal.SIGTERM)
+        }
         try:
-            while time.monotonic() < end and self.server.proc.poll() is None:
+            while not stopped and time.monotonic() < end and self.server.proc.poll() is None:
                 time.sleep(0.2)
-        except KeyboardInterrupt:
-            pass
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        if stopped:
+            name = signal.Signals(stopped[0]).name
+            print(f"replay: stopped serving ({name})", file=sys.stderr, flush=True)
 
     def close(self) -> None:
         try:

@@ -118,6 +118,32 @@ def test_replay_serves_the_web_viewer_on_loopback_and_the_page_shows_the_mesh(tm
     _rrd_ok(rrd)
 
 
+@pytest.mark.parametrize(
+    ("sig", "ignored_at_start"),
+    [(signal.SIGINT, True), (signal.SIGTERM, False)],
+    ids=["SIGINT, ignored from birth like a shell's background job", "SIGTERM"],
+)
+def test_a_serving_replay_stops_on_its_signal_and_closes_the_rrd(tmp_path, sig, ignored_at_start):
+    pytest.importorskip("rerun", reason="rerun-sdk is not installed (GS_NO_RERUN=1?)")
+    rrd, err = tmp_path / "replay.rrd", tmp_path / "err"
+    born = signal.SIG_IGN if ignored_at_start else signal.SIG_DFL
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "groundstation.cli", "replay",
+         str(ROOT / "replay_logs/wall_survey.mcap"), "--quiet", "--viewer", "rerun",
+         "--web-port", "0", "--grpc-port", "0", "--serve-s", "600", "--rrd", str(rrd)],
+        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err.open("w"), stdin=subprocess.DEVNULL,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, born),
+    )  # fmt: skip
+    try:
+        wait_for(lambda: proc.poll() is None and _url(err, "replay: serving "), 300,
+                 "the replay to finish and serve", poll=0.5)  # fmt: skip
+    finally:
+        rc = stop(proc, sig, timeout=30)
+    assert rc == 0, err.read_text()[-8000:]
+    assert f"replay: stopped serving ({sig.name})" in err.read_text()
+    _rrd_ok(rrd)
+
+
 @pytest.mark.soak  # a few minutes of live session and browser polling
 def test_live_web_view_and_the_live_recording_in_foxglove_schemas(tmp_path):
     """``live --viewer rerun --record`` against the SITL until the first meshes: the page shows
