@@ -23,6 +23,8 @@ Metrics per engine (and pooled), per detector variant (``--variant``):
   0.2 m/s: real contacts the map builds from, not in the evidence model's training set);
 - candidates that match no truth contact (a hard brake or turn read as an impulse) and how many
   of them get ``p_false <= 0.5`` (false contacts handed to the map);
+- the same for a touch's echoes (``pipeline.scoring.match_events``: a later candidate after
+  the touch ended, the vehicle's reaction to it), which the evidence model learns as false;
 - ROC AUC of ``p_false`` between detected gusts and detected touches;
 - placement: distance of each touch's first contact point to the true surface, median and p90;
 - real flights (no contact happened): candidates and contacts (``p_false <= 0.5``) per minute,
@@ -449,7 +451,11 @@ IMU_INPUTS = ("log_duration_ms", "log_dv_imu", "log_peak_g", "axial_fraction", "
 
 #: Truth kinds the evidence model learns as real contacts.
 REAL_KINDS = ("touch", "slow_touch")
-#: Share of the false class's weight given to candidates that match no contact (braking, turns).
+#: Truth kinds it learns as false: gusts, candidates that match no contact (braking, turns) and
+#: a touch's echo (the vehicle's reaction after it, ``pipeline.scoring.match_events``).
+FALSE_KINDS = ("gust", "none", "echo")
+#: Share of the false class's weight given to the detector's own false alarms (candidates that
+#: match no contact, echoes).
 UNMATCHED_SHARE = 0.15
 
 
@@ -464,7 +470,7 @@ def training_weights(kinds: Sequence[str]) -> np.ndarray:
     """
     k = np.asarray(kinds)
     real = np.isin(k, REAL_KINDS)
-    none = k == "none"
+    none = np.isin(k, ("none", "echo"))
     w = np.ones(k.size)
     n_none, n_other = int(none.sum()), int((~real & ~none).sum())
     if n_none and n_other:
@@ -521,7 +527,7 @@ def fit_evidence_model(
 
     from groundstation.contact.evidence import EvidenceModel, Logistic, design, n_terms
 
-    rows = [(ev, _inputs(ev)) for ev in events if ev.kind in (*REAL_KINDS, "gust", "none")]
+    rows = [(ev, _inputs(ev)) for ev in events if ev.kind in (*REAL_KINDS, *FALSE_KINDS)]
     rows = [(ev, z) for ev, z in rows if z is not None]
     blocks = {}
     for key, names in (("with_mocap", MOCAP_INPUTS), ("imu_only", IMU_INPUTS)):
@@ -617,6 +623,8 @@ def summarize(events: Sequence[LabelledEvent], items: Sequence[TruthItem]) -> di
         "cluster_gusts_p_false_gt": _share([e.false_by_evidence for e in gusts if e.cluster]),
         "unmatched_candidates": sum(e.kind == "none" for e in events),
         "unmatched_contacts": sum(e.kind == "none" and not e.false_by_evidence for e in events),
+        "echo_candidates": sum(e.kind == "echo" for e in events),
+        "echo_contacts": sum(e.kind == "echo" and not e.false_by_evidence for e in events),
         "placement_surface_median_m": float(np.median(surf)) if surf.size else math.nan,
         "placement_surface_p90_m": float(np.percentile(surf, 90)) if surf.size else math.nan,
         "placement_point_median_m": float(np.median(pt)) if pt.size else math.nan,
@@ -662,10 +670,10 @@ def markdown(results: dict[str, Any]) -> str:
         out.append(
             "| engine | touches (>= 0.3 m/s) | recall >= 0.3 | gusts | AUC p_false | gusts "
             "p>0.5 (detected) | gusts not contacts (all) | touches p>0.5 | slow touches "
-            "p>0.5 | cluster gusts p>0.5 | unmatched candidates kept (p<=0.5) | placement "
-            "median / p90 (m) |"
+            "p>0.5 | cluster gusts p>0.5 | unmatched candidates kept (p<=0.5) | touches' "
+            "echoes kept (p<=0.5) | placement median / p90 (m) |"
         )
-        out.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
+        out.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
         for engine, s in res["engines"].items():
             out.append(
                 f"| {engine} | {s['truth_touches']} ({s['truth_touches_ge_0.3']}) | "
@@ -675,6 +683,7 @@ def markdown(results: dict[str, Any]) -> str:
                 f"{_f(s.get('slow_touches_p_false_gt'), '.3f')} | "
                 f"{_f(s['cluster_gusts_p_false_gt'])} | "
                 f"{s['unmatched_contacts']} of {s['unmatched_candidates']} | "
+                f"{s.get('echo_contacts', 0)} of {s.get('echo_candidates', 0)} | "
                 f"{_f(s['placement_surface_median_m'], '.3f')} / "
                 f"{_f(s['placement_surface_p90_m'], '.3f')} |"
             )

@@ -176,6 +176,7 @@ def markdown(comparison: Mapping[str, Any], overrides: Mapping[str, Sequence[str
                     p, "mislocated_touches_flagged"
                 ),
                 "events: slow touches flagged": lambda p: _share(p, "slow_touch_events_flagged"),
+                "events: touches' echoes flagged": lambda p: _share(p, "echo_events_flagged"),
                 "events: flag precision": lambda p: _share(p, "fp_precision"),
                 "events: touches detected": lambda p: _share(p, "detection_recall"),
                 "touched surface missing within 0.2 m, by area (m²)": lambda p: _share(

@@ -186,6 +186,7 @@ def pool(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "slow_touch_events_flagged": counted(
             "slow_touch_events_flagged", lambda rep: rep.get("events_slow_touch")
         ),
+        "echo_events_flagged": counted("echo_events_flagged", lambda rep: rep.get("events_echo")),
         "fp_precision": _share(total("events_flagged_false"), total("events_flagged")),
         "detection_recall": _share(
             total("detection_recall", "truth_touches"), total("truth_touches")

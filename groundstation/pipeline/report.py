@@ -271,6 +271,8 @@ def truth_rows(report: Mapping[str, Any]) -> list[tuple[str, str]]:
         ("events_touch_mislocated", "touch events placed > 0.1 m off the surface"),
         ("mislocated_touches_flagged", "touch events flagged, of those placed off it"),
         ("slow_touch_events_flagged", "slow touch events (< 0.2 m/s) flagged"),
+        ("events_echo", "echoes of touches (the vehicle's reaction, not a contact)"),
+        ("echo_events_flagged", "echoes of touches flagged"),
         ("fp_precision", "flag precision"),
         ("fp_recall", "flag recall"),
         ("detection_recall", "touches detected"),

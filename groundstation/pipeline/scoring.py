@@ -77,6 +77,16 @@ Metrics (all distances in metres)
     lies in ``[start - 0.1 s, end + 0.3 s]`` of a truth event matches it (nearest start wins).
     Events matched to a truth ``gust`` are the false contacts. Precision = flagged false /
     flagged; recall = flagged false / detected false. NaN (``null`` in JSON) when undefined.
+``events_echo``, ``echo_events_flagged``
+    A touch's *echo* is a later detected event matched to the same truth touch that starts
+    more than ``ECHO_AFTER_S`` (0.05 s) after the touch ended: the vehicle's own reaction to
+    the touch (its controller swinging the thrust back, 0.15-0.3 s later on the MuJoCo
+    airframe's guard touches, an impulse along the body axis), not a contact. Its contact
+    points lie where the vehicle was then, up to 0.45 m from any surface, so flagging it is
+    right; it counts as a false contact (for ``patch_sources`` too), not as a touch, and these
+    keys give how many there were and the share the map flags. Before this rule an echo
+    counted as a flagged touch placed off the surface. An event that starts while the touch
+    lasts (a long slide detected twice) stays a touch.
 ``detection_recall``
     Truth ``touch`` events matched by at least one detected event / truth touches.
 """
@@ -95,6 +105,9 @@ from groundstation.mapping.surface import SurfaceMesh
 
 MATCH_BEFORE_S = 0.1
 MATCH_AFTER_S = 0.3
+#: A later event matched to a touch that started this long after the touch ended is its echo.
+ECHO_AFTER_S = 0.05
+ECHO_KINDS = ("touch", "slow_touch")
 PHANTOM_LISTED = 3  # largest phantom patches listed by where they lie
 #: A detected event drew a phantom patch when one of its contact points lies within this of
 #: the patch's bounding box: the patch is surface over 0.15 m from the truth, and the blob a
@@ -116,12 +129,18 @@ class DetectedEvent:
 
 
 def match_events(events: Sequence[DetectedEvent], truth: dict) -> dict[int, tuple[int, str] | None]:
-    """Detected event id -> (truth contact index, kind), or None when nothing matches."""
+    """Detected event id -> (truth contact index, kind), or None when nothing matches.
+
+    An event matched to a touch (``touch``, ``slow_touch``) that starts more than
+    ``ECHO_AFTER_S`` after that touch ended, when an earlier event already matched it, is the
+    touch's *echo*, kind ``"echo"`` (module docstring)."""
     offset = int(truth.get("clock", {}).get("station_offset_ns", 0))
     contacts = truth.get("contacts", [])
     out: dict[int, tuple[int, str] | None] = {}
+    starts: dict[int, float] = {}
     for ev in events:
         t = (ev.t_start_ns - offset) / 1e9
+        starts[ev.id] = t
         best: tuple[float, int] | None = None
         for k, c in enumerate(contacts):
             if c["start"] - MATCH_BEFORE_S <= t <= c["end"] + MATCH_AFTER_S:
@@ -129,6 +148,16 @@ def match_events(events: Sequence[DetectedEvent], truth: dict) -> dict[int, tupl
                 if best is None or d < best[0]:
                     best = (d, k)
         out[ev.id] = None if best is None else (best[1], contacts[best[1]]["kind"])
+    first: dict[int, float] = {}
+    for eid, m in out.items():
+        if m is not None:
+            first[m[0]] = min(first.get(m[0], math.inf), starts[eid])
+    for eid, m in out.items():
+        if m is None or m[1] not in ECHO_KINDS:
+            continue
+        end = float(contacts[m[0]]["end"])
+        if first[m[0]] < starts[eid] and starts[eid] > end + ECHO_AFTER_S:
+            out[eid] = (m[0], "echo")
     return out
 
 
@@ -153,6 +182,8 @@ def false_positive_scores(
     ``slow_touch_events_flagged``, ``events_slow_touch``
         Share of detected events matched to truth slow touches that the map flags, and their
         number.
+    ``echo_events_flagged``, ``events_echo``
+        Share of the touches' echoes (:func:`match_events`) that the map flags, and their number.
     ``fp_precision``, ``fp_recall``, ``detection_recall`` and the counts behind them."""
     m = match_events(events, truth)
     false = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "gust"}
@@ -163,6 +194,7 @@ def false_positive_scores(
     gusts = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "gust"}
     touched = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "touch"}
     slow = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "slow_touch"}
+    echoes = {e.id for e in events if m[e.id] is not None and m[e.id][1] == "echo"}
     off = _mislocated([e for e in events if e.id in touched], truth, mislocated_m)
     on = touched - off
     return {
@@ -174,6 +206,8 @@ def false_positive_scores(
         "mislocated_touches_flagged": len(off & flagged) / len(off) if off else math.nan,
         "slow_touch_events_flagged": len(slow & flagged) / len(slow) if slow else math.nan,
         "events_slow_touch": len(slow),
+        "echo_events_flagged": len(echoes & flagged) / len(echoes) if echoes else math.nan,
+        "events_echo": len(echoes),
         "fp_precision": tp / len(flagged) if flagged else math.nan,
         "fp_recall": tp / len(false) if false else math.nan,
         "detection_recall": len(found & set(touches)) / len(touches) if touches else math.nan,

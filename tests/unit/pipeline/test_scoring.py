@@ -264,3 +264,50 @@ def test_score_says_what_drew_the_largest_patch():
     kept = score(mesh, [touch, dataclasses.replace(gust, flagged=True)], truth)
     assert kept["phantom_max_patch_cause"] == "touches"  # the wall's touch 0.25 m behind it
     assert score(None, [touch], truth)["phantom_max_patch_cause"] is None
+
+
+def test_a_later_event_after_a_touch_ended_is_its_echo_not_a_touch():
+    import numpy as np
+
+    from groundstation.pipeline.scoring import (
+        DetectedEvent,
+        false_positive_scores,
+        match_events,
+        patch_sources,
+    )
+
+    # a 50 ms touch at t = 1 detected at its onset (event 0); the vehicle's reaction detected
+    # 0.2 s after the touch ended (event 1, placed 0.3 m off the wall, flagged); a slide at
+    # t = 5-5.6 s detected twice while it lasts (events 2 and 3); a gust at 3 s, detected twice
+    truth = _wall_truth(
+        {"kind": "touch", "start": 5.0, "end": 5.6, "point": [1.0, 0.5, 1.0]},
+    )
+    on = ((1.0, 0.0, 1.0),)
+    echo = DetectedEvent(1, int(1.25e9), flagged=True, points=((0.7, 0.0, 1.0),))
+    events = [
+        DetectedEvent(0, int(1.003e9), points=on),
+        echo,
+        DetectedEvent(2, int(5.01e9), points=on),
+        DetectedEvent(3, int(5.4e9), points=on),
+        DetectedEvent(4, int(3.0e9), flagged=True),
+        DetectedEvent(5, int(3.3e9), flagged=True),
+    ]
+    m = match_events(events, truth)
+    assert m == {0: (0, "touch"), 1: (0, "echo"), 2: (2, "touch"), 3: (2, "touch"),
+                 4: (1, "gust"), 5: (1, "gust")}  # fmt: skip
+    s = false_positive_scores(events, truth)
+    assert s["events_echo"] == 1 and s["echo_events_flagged"] == 1.0
+    assert s["touch_events_flagged"] == 0.0 and s["events_touch"] == 3
+    assert s["events_touch_mislocated"] == 0  # the echo is not a touch placed off the wall
+    assert s["detection_recall"] == 1.0
+    # within ECHO_AFTER_S of the touch's end it is still the touch, and alone it is the touch
+    assert match_events([events[0], dataclasses.replace(echo, t_start_ns=int(1.09e9))], truth)[
+        1
+    ] == (0, "touch")
+    assert match_events([echo], truth) == {1: (0, "touch")}
+    # kept, an echo draws its patch as a false contact
+    patch = {"area_m2": 0.2, "centre": [0.8, 0.0, 1.0], "lo": [0.75, -0.2, 0.8],
+             "hi": [0.85, 0.2, 1.2], "farthest_m": 0.25}  # fmt: skip
+    (p,) = patch_sources([patch], [events[0], dataclasses.replace(echo, flagged=False)], truth)
+    assert p["cause"] == "false contact"
+    assert np.isnan(false_positive_scores(events[:1], truth)["echo_events_flagged"])
