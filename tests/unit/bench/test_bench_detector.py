@@ -57,6 +57,9 @@ def test_summarize_rates_by_speed_and_force():
         _event("gust", 0.2, force_n=8.0),
         _event("none", 0.95),
         _event("none", 0.1),
+        _event("echo", 0.8, surface_m=0.3),  # the reaction after a touch: not a touch
+        _event("echo", 0.4, surface_m=0.3),
+        _event("echo", 0.9, surface_m=0.3),
         _event("slow_touch", 0.6, speed_mps=0.15),
         _event("slow_touch", 0.3, speed_mps=0.1),
         _event("slow_touch", 0.2, speed_mps=0.1),
@@ -82,11 +85,13 @@ def test_summarize_rates_by_speed_and_force():
     assert s["cluster_gusts_p_false_gt"] == 1.0
     assert s["force_bins"]["20-45 N"]["detected"] == 1.0
     assert s["unmatched_candidates"] == 2 and s["unmatched_contacts"] == 1
+    assert s["echo_candidates"] == 3 and s["echo_contacts"] == 1
     assert s["auc_p_false"] == pytest.approx(0.75)  # 3 of the 4 gust-touch pairs ordered
     assert s["placement_surface_median_m"] == pytest.approx(0.005)
     text = db.markdown({"variants": {"v": {"engines": {"simple": s}, "real": None}}})
     assert "| simple | 3 (2) | 0.500 |" in text
-    assert "| 0.500 | 0.250 | 1.00 | 1 of 2 |" in text  # touches, slow touches, unmatched kept
+    # touches, slow touches, cluster gusts, unmatched and echoes kept
+    assert "| 0.500 | 0.250 | 1.00 | 1 of 2 | 1 of 3 |" in text
 
 
 def test_rejected_events_count_as_false():
@@ -155,6 +160,9 @@ def test_training_weights_balance_the_classes_and_give_false_alarms_their_share(
     assert np.allclose(w[real], w[0])  # a slow touch weighs as much as a touch
     no_none = db.training_weights(["touch"] * 3 + ["gust"])
     assert no_none.tolist() == pytest.approx([2 / 3, 2 / 3, 2 / 3, 2.0])
+    # a touch's echo is one of the detector's own false alarms, weighed with them
+    echoes = db.training_weights(kinds[:-2] + ["echo"] * 2)
+    assert echoes.tolist() == pytest.approx(w.tolist())
 
 
 def test_variant_parse():

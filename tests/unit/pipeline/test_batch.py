@@ -229,6 +229,16 @@ def test_pool_counts_slow_touch_flags_over_the_reports_that_have_them():
     assert (s["num"], s["den"], s["share"]) == (1, 4, 0.25)
 
 
+def test_pool_counts_the_echoes_flagged_over_the_reports_that_have_them():
+    a = _record(0.1, 3, 2, 2)
+    a["report"].update(events_echo=2, echo_events_flagged=1.0)
+    b = _record(0.1, 3, 2, 2)
+    b["report"].update(events_echo=1, echo_events_flagged=0.0)
+    older = _record(0.1, 3, 2, 2)  # a report from before echoes were told from touches
+    s = pool([a, b, older])["shares"]["echo_events_flagged"]
+    assert (s["num"], s["den"]) == (2, 3)
+
+
 def test_pool_counts_the_flights_over_the_patch_line_by_cause():
     largest = [(0.3, "touches"), (0.05, "touches"), (0.2, "false contact"), (0.15, "touches"),
                (0.1, "touches"), (None, None), (0.4, None)]  # fmt: skip
