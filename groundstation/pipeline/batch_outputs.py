@@ -105,7 +105,7 @@ def run_task(task: Task, out_root: str, snapshots: int = 3) -> dict[str, Any]:
                 map_mode=task.map_mode,
                 checkpoints=task.checkpoints,
             )
-            write_outputs(result, staging, snapshots=snapshots)
+            write_outputs(result, staging, snapshots=snapshots, config=task.config)
         marker = {
             "key": task.key, "log": task.log, "log_sha256": task.log_sha256,
             "config_hash": task.config_hash, "map": task.map_mode,
