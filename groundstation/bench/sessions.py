@@ -197,7 +197,65 @@ def markdown(comparison: Mapping[str, Any], overrides: Mapping[str, Sequence[str
                 if cp is not None:
                     row += f" {f(cp)} | |"
                 lines.append(row)
+            lines += mask_curve_lines(gp, cp)
     return "\n".join(lines) + "\n"
+
+
+def _curve_cells(
+    over: str, big: Any, area: Any, near: Mapping[str, Any], missing: Any, m2t: Any
+) -> list[str]:
+    near_cell = f"{fmt(near['share'])} of {fmt(near['den'], '.2f')}"
+    return [over, fmt(big), fmt(area), near_cell, fmt(missing), fmt(m2t)]
+
+
+def mask_curve_lines(gp: Mapping[str, Any], cp: Mapping[str, Any] | None) -> list[str]:
+    """The group's mask curve (``pipeline.pooling.pool_mask_curve``) as a table: the configured
+    mask's row from the group's own figures, then each stricter mask; gusty flights, controls
+    in brackets. Nothing when no report has a curve."""
+    if not gp.get("mask_curve"):
+        return []
+
+    def configured(p: Mapping[str, Any]) -> list[str]:
+        lp, m = p["large_patches"], p["metrics"]
+        return _curve_cells(
+            f"{lp['over']}/{lp['flights']}",
+            m["phantom_max_patch_m2"]["mean"],
+            m["phantom_area_m2"]["mean"],
+            p["shares"]["missing_near_by_area"],
+            m["missing_share"]["mean"],
+            m["mesh_to_truth_median_m"]["mean"],
+        )
+
+    def stricter(row: Mapping[str, Any]) -> list[str]:
+        return _curve_cells(
+            f"{row['over']}/{row['flights']}",
+            row["phantom_max_patch_m2"]["mean"],
+            row["phantom_area_m2"]["mean"],
+            row["missing_near_by_area"],
+            row["missing_share"]["mean"],
+            row["mesh_to_truth_median_m"]["mean"],
+        )
+
+    rows = [("configured", configured(gp), configured(cp) if cp is not None else None)]
+    by_frac = {r["max_std_fraction"]: r for r in (cp or {}).get("mask_curve") or []}
+    for r in gp["mask_curve"]:
+        c = by_frac.get(r["max_std_fraction"])
+        rows.append((f"{r['max_std_fraction']:.2f}", stricter(r), stricter(c) if c else None))
+    out = [
+        "",
+        "The same final meshes kept at stricter confidence masks (`surface.max_std_fraction`, "
+        "a fraction of the prior std): the phantom surface a stricter mask removes and the "
+        "touched surface it costs" + (" (controls in brackets)." if cp is not None else "."),
+        "",
+        f"| mask | flights over {PATCH_LINE_M2} m² | largest phantom patch, mean (m²) | "
+        "phantom area, mean (m²) | touched surface missing within 0.2 m, share of the area (m²) | "
+        "missing within 0.5 m, mean | mesh -> truth median, mean (m) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, g, c in rows:
+        cells = g if c is None else [f"{a} ({b})" for a, b in zip(g, c, strict=True)]
+        out.append(f"| {name} | " + " | ".join(cells) + " |")
+    return out
 
 
 def _share(p: Mapping[str, Any], key: str, share: str = ".2f", counts: str = ".0f") -> str:

@@ -25,14 +25,16 @@ import csv
 import json
 import math
 import statistics
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from groundstation.contact.detector import LABEL_SURFACE
 from groundstation.mapping.mapper import FLAG_AWAITING, FLAG_FALSE_POSITIVE
+from groundstation.mapping.settings import SurfaceSettings
 from groundstation.pipeline.offline import PipelineResult
-from groundstation.pipeline.scoring import DetectedEvent, score
+from groundstation.pipeline.scoring import MASK_CURVE, DetectedEvent, mask_curve, score
 
 
 def detected_events(result: PipelineResult) -> list[DetectedEvent]:
@@ -63,8 +65,14 @@ KEEP_MESHES = 200
 TIMING_KEYS = frozenset({"wall_s", "refit_s_median", "refit_s_p95", "refit_s_max"})
 
 
-def build_report(result: PipelineResult, *, scored: bool = True) -> dict:
-    """Every report key of ``groundstation replay`` (truth metrics when the log has truth)."""
+def build_report(
+    result: PipelineResult, *, scored: bool = True, mask_fractions: Sequence[float] = ()
+) -> dict:
+    """Every report key of ``groundstation replay`` (truth metrics when the log has truth).
+
+    ``mask_fractions``: the stricter confidence masks the final mesh is also scored at
+    (``mask_curve``, :func:`~groundstation.pipeline.scoring.mask_curve`; :func:`stricter_masks`
+    of the run's settings), when the mesh is the final fit's own (its kernel's prior std)."""
     fits = result.fits
     refit_s = [f.timings["total_s"] for f in fits if "total_s" in f.timings]
     minutes = result.duration_s / 60.0
@@ -100,7 +108,20 @@ def build_report(result: PipelineResult, *, scored: bool = True) -> dict:
     if scored and result.truth:
         mesh = result.final.mesh if result.final is not None else None
         rep.update(score(mesh, detected_events(result), result.truth))
+        final = result.final
+        sf2 = None if final is None else final.hyperparameters.get("signal_var")
+        own = final is not None and final.mesh_fit_index == final.fit_index
+        if mask_fractions and own and sf2 is not None and math.isfinite(float(sf2)):
+            rep["mask_curve"] = mask_curve(
+                mesh, result.truth, math.sqrt(float(sf2)), mask_fractions
+            )
     return rep
+
+
+def stricter_masks(surface: SurfaceSettings) -> tuple[float, ...]:
+    """The fractions of :data:`~groundstation.pipeline.scoring.MASK_CURVE` stricter than the
+    configured ``surface.max_std_fraction`` (the mesh holds no face a looser one would add)."""
+    return tuple(f for f in MASK_CURVE if f < surface.max_std_fraction - 1e-9)
 
 
 def _clean(obj):
@@ -219,7 +240,7 @@ def write_outputs(
     config = config or Config()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    report = build_report(result)
+    report = build_report(result, mask_fractions=stricter_masks(config.surface))
     final = result.final
     if final is not None and final.mesh is not None and not final.mesh.is_empty:
         from groundstation.mapping.surface import write_ply

@@ -16,6 +16,9 @@ reported (``missing_area_near_detected_m2`` over ``touched_area_near_detected_m2
 line), of those that have one measured, and how many of them each cause drew
 (``phantom_max_patch_cause``, ``pipeline.scoring.patch_sources``; ``not recorded`` for reports
 written before it existed).
+``mask_curve``: the reports' ``mask_curve`` rows (the final mesh at stricter confidence masks,
+``pipeline.scoring.mask_curve``) pooled per mask (:func:`pool_mask_curve`): what the phantom
+line would cost in missing surface if the mask alone were tightened.
 ``u_auc``: probability that a gust event's median contact u exceeds a touch event's.
 ``refit_s_median``: median over every refit of every task. ``task_wall_s``: mean / median /
 max wall time of one task (replay + outputs).
@@ -206,6 +209,7 @@ def pool(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "metrics": metrics,
         "shares": shares,
         "large_patches": large_patches(reports),
+        "mask_curve": pool_mask_curve(reports),
         "u_auc": u_auc(
             [u for k, u in events if k == "gust"], [u for k, u in events if k != "gust"]
         ),
@@ -235,6 +239,36 @@ def large_patches(reports: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         by_cause[cause] = by_cause.get(cause, 0) + 1
     return {"line_m2": PATCH_LINE_M2, "flights": len(measured), "over": len(over),
             "by_cause": by_cause}  # fmt: skip
+
+
+def pool_mask_curve(reports: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """The reports' ``mask_curve`` rows pooled per mask, strictest last: flights scored, those
+    whose largest phantom patch is over :data:`PATCH_LINE_M2`, the mean largest patch and
+    phantom area, the touched surface missing within 0.2 m by area (as ``missing_near_by_area``),
+    and the means of ``missing_share`` (within 0.5 m) and ``mesh_to_truth_median_m``."""
+    rows: dict[float, list[Mapping[str, Any]]] = {}
+    for rep in reports:
+        for row in rep.get("mask_curve") or []:
+            rows.setdefault(float(row["max_std_fraction"]), []).append(row)
+    out = []
+    for frac in sorted(rows, reverse=True):
+        rs = rows[frac]
+        big = _finite(r.get("phantom_max_patch_m2") for r in rs)
+        pairs = [_finite([r.get("missing_area_near_m2"), r.get("touched_area_near_m2")])
+                 for r in rs]  # fmt: skip
+        out.append({
+            "max_std_fraction": frac,
+            "flights": len(big),
+            "over": sum(b > PATCH_LINE_M2 for b in big),
+            "phantom_max_patch_m2": metric_stats(big),
+            "phantom_area_m2": metric_stats(r.get("phantom_area_m2") for r in rs),
+            "missing_near_by_area": _share(
+                sum(p[0] for p in pairs if len(p) == 2), sum(p[1] for p in pairs if len(p) == 2)
+            ),
+            "missing_share": metric_stats(r.get("missing_share") for r in rs),
+            "mesh_to_truth_median_m": metric_stats(r.get("mesh_to_truth_median_m") for r in rs),
+        })  # fmt: skip
+    return out
 
 
 def large_patches_text(p: Mapping[str, Any]) -> str:

@@ -57,6 +57,13 @@ Metrics (all distances in metres)
     any real surface), else ``touches`` (true touches on the surface: the shape the map drew
     between or behind them), else ``no kept contact``. ``phantom_max_patch_cause`` is the
     largest patch's cause (None without a patch).
+``mask_curve``
+    The same surface metrics (:data:`CURVE_KEYS`) of the final mesh kept at each stricter
+    confidence mask of :data:`MASK_CURVE` (``surface.max_std_fraction``: faces whose vertices'
+    predictive std is at most that fraction of the prior std), one row per mask below the
+    configured one (:func:`mask_curve`). The mask is the one knob between surface missing and
+    phantom surface: a map that meets the phantom line only at a stricter mask pays for it in
+    missing surface, and the row says how much, from the same run.
 ``gust_events_flagged``, ``touch_events_flagged``
     Shares of detected events matched to truth gusts / touches that the map flags false.
 ``events_touch_mislocated``, ``touch_events_flagged_on_surface``, ``mislocated_touches_flagged``
@@ -100,8 +107,9 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.errors import InputDataError
 from groundstation.mapping.metrics import chamfer_distance, phantom_patches, sample_mesh_surface
-from groundstation.mapping.surface import SurfaceMesh
+from groundstation.mapping.surface import SurfaceMesh, confident_part
 
 MATCH_BEFORE_S = 0.1
 MATCH_AFTER_S = 0.3
@@ -218,6 +226,36 @@ def false_positive_scores(
         "truth_gusts": sum(c["kind"] == "gust" for c in truth.get("contacts", [])),
         "truth_touches": len(touches),
     }
+
+
+#: Stricter confidence masks (fractions of the prior std) at which a report also scores the
+#: final mesh (:func:`mask_curve`).
+MASK_CURVE = (0.55, 0.5, 0.45, 0.4)
+#: The surface metrics a row of the mask curve holds.
+CURVE_KEYS = (
+    "missing_share", "missing_share_near", "touched_area_near_m2", "missing_area_near_m2",
+    "phantom_area_m2", "phantom_max_patch_m2", "mesh_to_truth_median_m", "chamfer_m",
+)  # fmt: skip
+
+
+def mask_curve(
+    mesh: SurfaceMesh | None, truth: dict, sigma_f: float, fractions: Sequence[float]
+) -> list[dict[str, float]]:
+    """The :data:`CURVE_KEYS` of ``mesh`` kept at each confidence mask of ``fractions``
+    (``surface.confident_part`` at ``fraction * sigma_f``), one dict per fraction with its
+    ``max_std_fraction``. ``mesh`` must carry its vertex std and have been masked at no
+    stricter a fraction than these (a stricter mask keeps a subset of its faces; a looser one
+    would need faces it no longer has). Empty without a mesh with std, or without truth."""
+    if mesh is None or mesh.std is None or not truth or not truth.get("scene"):
+        return []
+    if not (math.isfinite(sigma_f) and sigma_f > 0):
+        raise InputDataError(f"mask_curve: sigma_f must be a positive number, got {sigma_f!r}")
+    rows = []
+    for frac in fractions:
+        kept = mesh if mesh.is_empty else confident_part(mesh, float(frac) * sigma_f)
+        scores = surface_scores(kept, truth)
+        rows.append({"max_std_fraction": float(frac), **{k: scores[k] for k in CURVE_KEYS}})
+    return rows
 
 
 def patch_sources(

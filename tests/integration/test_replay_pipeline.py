@@ -143,6 +143,12 @@ def test_replay_command_writes_every_output(tmp_path):
     for key in REPORT_SUMMARY_KEYS:  # the keys the issue names, plus truth metrics
         assert key in report, key
     assert report["contacts"] > 0 and report["duration_s"] > 20
+    # the final mesh also scored at each stricter confidence mask than the default 0.6: a
+    # stricter mask keeps a subset of the faces, so it never adds phantom surface
+    curve = report["mask_curve"]
+    assert [r["max_std_fraction"] for r in curve] == [0.55, 0.5, 0.45, 0.4]
+    areas = [report["phantom_area_m2"]] + [r["phantom_area_m2"] for r in curve]
+    assert all(b <= a + 1e-12 for a, b in zip(areas, areas[1:], strict=False)), areas
     assert (out / "mesh.ply").read_bytes().startswith(b"ply")
     assert len(list((out / "snapshots").glob("*.png"))) == 1
     with (out / "observations.csv").open() as fh:

@@ -82,3 +82,43 @@ def test_groups_and_ratio_to_the_control():
 def test_ratio_is_nan_when_undefined():
     assert math.isnan(ratio(1.0, 0.0)) and math.isnan(ratio(math.nan, 1.0))
     assert ratio(0.2, 0.1) == pytest.approx(2.0)
+
+
+def test_the_mask_curve_is_pooled_per_mask_beside_the_configured_one():
+    from groundstation.mapping.settings import SurfaceSettings
+    from groundstation.pipeline.outputs import stricter_masks
+
+    assert stricter_masks(SurfaceSettings()) == (0.55, 0.5, 0.45, 0.4)  # default 0.6
+    assert stricter_masks(SurfaceSettings(max_std_fraction=0.5)) == (0.45, 0.4)
+
+    def rec(patch, curve):
+        r = _rec(0.1)
+        r["report"].update(phantom_max_patch_m2=patch, phantom_area_m2=patch)
+        r["report"]["mask_curve"] = [
+            {"max_std_fraction": f, "phantom_max_patch_m2": p, "phantom_area_m2": p,
+             "missing_area_near_m2": m, "touched_area_near_m2": 1.0, "missing_share": m,
+             "mesh_to_truth_median_m": 0.02}
+            for f, p, m in curve
+        ]  # fmt: skip
+        return r
+
+    plan = _plan()
+    curves = {
+        "g1": rec(0.3, [(0.5, 0.2, 0.1), (0.4, 0.05, 0.3)]),
+        "g2": rec(0.15, [(0.5, 0.12, 0.1), (0.4, 0.0, 0.2)]),
+        "c1": rec(0.05, [(0.5, 0.0, 0.1), (0.4, 0.0, 0.1)]),
+        "c2": rec(0.0, [(0.5, 0.0, 0.1), (0.4, 0.0, 0.1)]),
+        "wall": _rec(0.05),
+    }
+    records = {c.task.folder: curves[c.log.name] for c in plan.cells}
+    cmp = compare(plan, records)["base"]
+    curve = cmp["pooled"]["gusty"]["mask_curve"]
+    assert [r["max_std_fraction"] for r in curve] == [0.5, 0.4]
+    assert [r["over"] for r in curve] == [2, 0]
+    assert curve[1]["missing_near_by_area"]["share"] == pytest.approx(0.25)
+    assert cmp["bundled"]["gusty"]["mask_curve"] == []
+    text = markdown(compare(plan, records), {"base": []})
+    assert "| configured | 2/2 (0/2) | 0.225 (0.025) |" in text  # pooled: both over, none
+    assert "| 0.50 | 2/2 (0/2) | 0.160 (0.000) |" in text
+    row = "| 0.40 | 0/2 (0/2) | 0.025 (0.000) | 0.025 (0.000) | 0.250 of 2.00 (0.100 of 2.00) |"
+    assert row in text

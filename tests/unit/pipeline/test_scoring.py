@@ -311,3 +311,48 @@ def test_a_later_event_after_a_touch_ended_is_its_echo_not_a_touch():
     (p,) = patch_sources([patch], [events[0], dataclasses.replace(echo, flagged=False)], truth)
     assert p["cause"] == "false contact"
     assert np.isnan(false_positive_scores(events[:1], truth)["echo_events_flagged"])
+
+
+def test_a_stricter_mask_trades_phantom_surface_for_missing_surface():
+    import numpy as np
+
+    from groundstation.errors import InputDataError
+    from groundstation.mapping.surface import SurfaceMesh
+    from groundstation.pipeline.scoring import CURVE_KEYS, mask_curve
+
+    # the wall x = 1 touched at (1, 0, 1), meshed on its face over y, z in [-0.5, 0.5] x
+    # [0.5, 1.5] with a std that grows away from the touch, and a 0.25 m x 1 m flap 0.3 m in
+    # front of it (phantom surface), the least certain part of the mesh
+    scene = {
+        "region": {"min": [-1, -2, 0], "max": [3, 2, 2]},
+        "objects": [{"type": "box", "min": [1.0, -2.0, 0.0], "max": [1.2, 2.0, 2.0]}],
+    }
+    truth = {"scene": scene, "contacts": [{"kind": "touch", "point": [1.0, 0.0, 1.0]}]}
+    n = 21
+    yy, zz = np.meshgrid(np.linspace(-0.5, 0.5, n), np.linspace(0.5, 1.5, n))
+    wall = np.column_stack([np.ones(n * n), yy.ravel(), zz.ravel()])
+    flap = wall.copy()
+    flap[:, 0] = 0.7
+    flap[:, 1] = 0.25 + (flap[:, 1] + 0.5) / 4.0  # y in [0.25, 0.5]
+    v = np.vstack([wall, flap])
+    faces = np.vstack([_grid_faces(n), len(wall) + _grid_faces(n)])
+    dist = np.linalg.norm(v - [1.0, 0.0, 1.0], axis=1)
+    std = np.where(v[:, 0] < 0.9, 0.55, 0.45 * dist / dist.max())
+    mesh = SurfaceMesh(v, faces, np.tile([-1.0, 0.0, 0.0], (len(v), 1)), std)
+    full = surface_scores(mesh, truth)
+    assert full["phantom_max_patch_m2"] == pytest.approx(0.25, rel=0.05)  # the flap
+    rows = mask_curve(mesh, truth, 1.0, (0.5, 0.05))
+    assert [r["max_std_fraction"] for r in rows] == [0.5, 0.05]
+    assert set(rows[0]) == {"max_std_fraction", *CURVE_KEYS}
+    assert rows[0]["phantom_max_patch_m2"] == 0.0  # the flap (std 0.55) is gone at 0.5
+    assert rows[0]["missing_share_near"] == pytest.approx(full["missing_share_near"])
+    # at 0.05 only the wall within 0.08 m of the touch is kept: touched surface goes missing
+    assert rows[1]["missing_share"] > rows[0]["missing_share"] + 0.1
+    assert rows[1]["missing_share_near"] > rows[0]["missing_share_near"]
+    # in sigma_f units: the same curve for a kernel of prior std 2 and a std twice as large
+    doubled = SurfaceMesh(v, faces, mesh.normals, 2.0 * std)
+    assert mask_curve(doubled, truth, 2.0, (0.5,))[0] == rows[0]
+    assert mask_curve(mesh, {"contacts": []}, 1.0, (0.5,)) == []
+    assert mask_curve(SurfaceMesh(v, faces, mesh.normals), truth, 1.0, (0.5,)) == []
+    with pytest.raises(InputDataError, match="sigma_f"):
+        mask_curve(mesh, truth, float("nan"), (0.5,))
