@@ -254,7 +254,8 @@ def rejected_text(events) -> str:
 def truth_rows(report: Mapping[str, Any]) -> list[tuple[str, str]]:
     """The report's truth scores as (label, text) summary rows (none without truth): the
     accuracy next to what it costs (surface missing, surface invented, and where the largest
-    invented patches lie), and the flags per event."""
+    invented patches lie), the flags per event, and what a stricter confidence mask would
+    trade (``mask_curve``)."""
     rows = []
     for key, label in (
         ("mesh_to_truth_median_m", "mesh -> truth, median (m)"),
@@ -288,6 +289,14 @@ def truth_rows(report: Mapping[str, Any]) -> list[tuple[str, str]]:
         rows.append((f"phantom patch {k}",
                      f"{_fmt(p['area_m2'])} m^2 at ({centre}), up to {_fmt(p['farthest_m'])} m "
                      f"from the truth{drawn}"))  # fmt: skip
+    for r in report.get("mask_curve") or []:
+        rows.append((
+            f"at a stricter mask, {r['max_std_fraction']:.2f} of the prior std",
+            f"largest phantom patch {_fmt(r['phantom_max_patch_m2'])} m^2, phantom surface "
+            f"{_fmt(r['phantom_area_m2'])} m^2; touched surface missing "
+            f"{_fmt(r['missing_share_near'])} within 0.2 m, {_fmt(r['missing_share'])} within "
+            f"0.5 m",
+        ))  # fmt: skip
     return rows
 
 

@@ -32,6 +32,15 @@ def test_the_summary_shows_what_accuracy_costs_and_where_the_map_invents_surface
     assert rows["phantom patch 1"] == "0.3 m^2 at (4.20, -1.00, 0.80), up to 0.27 m from the truth"
     assert "gust events flagged" not in rows  # not in the report (no gusts): not invented
     assert truth_rows({"log": "x.mcap"}) == []  # no truth, no rows
+    report["mask_curve"] = [
+        {"max_std_fraction": 0.5, "phantom_max_patch_m2": 0.05, "phantom_area_m2": 0.1,
+         "missing_share_near": 0.04, "missing_share": 0.3},
+    ]  # fmt: skip
+    assert dict(truth_rows(report))["at a stricter mask, 0.50 of the prior std"] == (
+        "largest phantom patch 0.05 m^2, phantom surface 0.1 m^2; touched surface missing "
+        "0.04 within 0.2 m, 0.3 within 0.5 m"
+    )
+    del report["mask_curve"]
     # with what drew it: the kept events near it (a flagged one drew nothing)
     report["phantom_patches"][0].update(
         cause="false contact",
