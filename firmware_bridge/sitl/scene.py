@@ -96,6 +96,16 @@ class Box:
         n[axis] = sign
         return -best, (q[0], q[1], q[2]), (n[0], n[1], n[2])
 
+    def signed_distances(self, points: np.ndarray) -> np.ndarray:
+        """:meth:`closest`'s signed distance of each of (n, 3) ``points``, vectorised."""
+        p = np.asarray(points, dtype=float).reshape(-1, 3)
+        lo, hi = np.array(self.min), np.array(self.max)
+        out = np.linalg.norm(p - np.clip(p, lo, hi), axis=1)
+        inside = out == 0.0
+        gaps = np.minimum(p[inside] - lo, hi - p[inside]).min(axis=1)
+        out[inside] = -gaps
+        return out
+
     def faces(self, index: int, step: float) -> list[Face]:
         """Six faces with a grid of touch points each (``step`` metres apart, >= 1 per face)."""
         out = []
@@ -159,7 +169,8 @@ class Cylinder:
         qx, qy = cx + ux * cr, cy + uy * cr
         ex, ey, ez = p[0] - qx, p[1] - qy, p[2] - cz
         dist = math.sqrt(ex * ex + ey * ey + ez * ez)
-        if dist > 0.0:
+        # Outside unless in the product set: inside, p - q is rounding noise (1e-17 m), not 0.
+        if dist > 0.0 and (rho > self.radius or cz != p[2]):
             return dist, (qx, qy, cz), (ex / dist, ey / dist, ez / dist)
         gap_side, gap_top, gap_bot = self.radius - rho, z1 - p[2], p[2] - z0
         best = min(gap_side, gap_top, gap_bot)
@@ -168,6 +179,20 @@ class Cylinder:
         if best == gap_top:
             return -best, (p[0], p[1], z1), (0.0, 0.0, 1.0)
         return -best, (p[0], p[1], z0), (0.0, 0.0, -1.0)
+
+    def signed_distances(self, points: np.ndarray) -> np.ndarray:
+        """:meth:`closest`'s signed distance of each of (n, 3) ``points``, vectorised."""
+        p = np.asarray(points, dtype=float).reshape(-1, 3)
+        cx, cy, z0 = self.center
+        z1 = z0 + self.height
+        rho = np.hypot(p[:, 0] - cx, p[:, 1] - cy)
+        out = np.hypot(np.maximum(rho - self.radius, 0.0), p[:, 2] - np.clip(p[:, 2], z0, z1))
+        inside = out == 0.0
+        gaps = np.minimum(
+            self.radius - rho[inside], np.minimum(z1 - p[inside, 2], p[inside, 2] - z0)
+        )
+        out[inside] = -gaps
+        return out
 
     def faces(self, index: int, step: float) -> list[Face]:
         """Lateral surface (touch points around it), top and bottom discs."""
@@ -230,6 +255,11 @@ class Sphere:
         n = (d[0] / rho, d[1] / rho, d[2] / rho) if rho > 1e-12 else (0.0, 0.0, 1.0)
         q = tuple(self.center[i] + self.radius * n[i] for i in range(3))
         return rho - self.radius, (q[0], q[1], q[2]), n
+
+    def signed_distances(self, points: np.ndarray) -> np.ndarray:
+        """:meth:`closest`'s signed distance of each of (n, 3) ``points``, vectorised."""
+        p = np.asarray(points, dtype=float).reshape(-1, 3)
+        return np.linalg.norm(p - np.array(self.center), axis=1) - self.radius
 
     def faces(self, index: int, step: float) -> list[Face]:
         """Eight touch directions around the equator, four at 45 degrees up, and the top."""
@@ -295,7 +325,10 @@ class Scene:
     def signed_distance(self, points: np.ndarray) -> np.ndarray:
         """Signed distance to the union of structures, (n, 3) -> (n,) metres (< 0 inside)."""
         pts = np.asarray(points, dtype=float).reshape(-1, 3)
-        return np.array([self.closest((float(x), float(y), float(z)))[0] for x, y, z in pts])
+        out = np.full(len(pts), np.inf)
+        for obj in self.objects:
+            np.minimum(out, obj.signed_distances(pts), out=out)
+        return out
 
     def inside_region(self, p: Vec, margin: float = 0.0) -> bool:
         """Whether ``p`` lies inside the region shrunk by ``margin`` metres."""

@@ -12,6 +12,7 @@ from firmware_bridge.errors import BridgeError
 from firmware_bridge.sitl.scene import (
     Box,
     Cylinder,
+    Scene,
     SceneError,
     Sphere,
     load_scene,
@@ -198,3 +199,32 @@ def test_signed_distance_vectorised_matches_closest():
     for p, d in zip(pts, sd, strict=True):
         assert d == pytest.approx(scene.closest(tuple(p))[0])
     assert (sd < 0).any() or (sd > 0).all()
+
+
+@pytest.mark.parametrize(
+    "obj",
+    [Box((-0.5, 0.2, 0.0), (0.7, 1.0, 1.5)), Cylinder((0.3, -0.2, 0.1), 0.4, 1.2),
+     Sphere((0.1, 0.1, 0.8), 0.6)],
+    ids=["box", "cylinder", "sphere"],
+)  # fmt: skip
+def test_each_primitive_signed_distances_match_closest_inside_on_and_outside(obj):
+    """The vectorised distances the scorer uses (phantom surface, missing surface) are the
+    per-point ``closest`` distances: outside, inside (negative, through the nearest face),
+    on the surface, on a cylinder's axis and at a box's centre."""
+    rng = np.random.default_rng(7)
+    pts = np.concatenate([
+        rng.uniform(-1.5, 2.0, (400, 3)),
+        obj.area_points(rng, 100),  # on the surface
+        obj.area_points(rng, 100) * 0.9 + 0.1 * np.asarray(
+            obj.center if hasattr(obj, "center") else np.add(obj.min, obj.max) / 2),  # inside
+        [[0.3, -0.2, 0.5], [0.1, 0.6, 0.75]],  # a cylinder's axis, the box's centre
+    ])  # fmt: skip
+    got = obj.signed_distances(pts)
+    want = np.array([obj.closest(tuple(float(x) for x in p))[0] for p in pts])
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    assert (want < 0).any() and (want > 0).any()
+    scene = Scene((-2, -2, -2), (3, 3, 3), (obj, Sphere((1.5, 1.5, 1.5), 0.3)), (0, 0, 0))
+    both = [scene.closest(tuple(float(x) for x in p))[0] for p in pts]
+    np.testing.assert_allclose(scene.signed_distance(pts), both, atol=1e-12)
+    empty = Scene((-2, -2, -2), (3, 3, 3), (), (0, 0, 0))
+    assert np.isinf(empty.signed_distance(pts[:3])).all()
