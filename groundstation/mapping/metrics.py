@@ -178,23 +178,35 @@ def sample_mesh_surface(
     -------
     (n, 3) float64; (0, 3) when the mesh has no area.
     """
+    return sample_mesh_faces(vertices, faces, n, seed=seed)[0]
+
+
+def sample_mesh_faces(
+    vertices: np.ndarray, faces: np.ndarray, n: int, *, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sample_mesh_surface` with the face each point lies on: ((n, 3) float64 points,
+    (n,) int64 face indices). The points on any subset of the faces are an area-uniform
+    sample of that subset, at the same density: one draw scores a mesh and every part of it
+    (``pipeline.scoring.mask_curve``)."""
     v = _points(vertices, "vertices", 3) if len(vertices) else np.zeros((0, 3))
     f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     if f.size and (f.min() < 0 or f.max() >= v.shape[0]):
         raise InputDataError(f"faces index vertices outside 0..{v.shape[0] - 1}")
+    none = (np.zeros((0, 3)), np.zeros(0, dtype=np.int64))
     if f.shape[0] == 0 or n <= 0:
-        return np.zeros((0, 3))
+        return none
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
     total = area.sum()
     if not total > 0:
-        return np.zeros((0, 3))
+        return none
     rng = np.random.default_rng(seed)
     tri = rng.choice(f.shape[0], size=n, p=area / total)
     r1, r2 = rng.random(n), rng.random(n)
     s = np.sqrt(r1)
     # Uniform barycentric sampling (Osada et al. 2002): P = (1-s) A + s(1-r2) B + s r2 C.
-    return (1 - s)[:, None] * a[tri] + (s * (1 - r2))[:, None] * b[tri] + (s * r2)[:, None] * c[tri]
+    pts = (1 - s)[:, None] * a[tri] + (s * (1 - r2))[:, None] * b[tri] + (s * r2)[:, None] * c[tri]
+    return pts, tri.astype(np.int64)
 
 
 @dataclasses.dataclass(frozen=True)

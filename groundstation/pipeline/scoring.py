@@ -108,7 +108,7 @@ from typing import Any
 import numpy as np
 
 from groundstation.errors import InputDataError
-from groundstation.mapping.metrics import chamfer_distance, phantom_patches, sample_mesh_surface
+from groundstation.mapping.metrics import chamfer_distance, phantom_patches, sample_mesh_faces
 from groundstation.mapping.surface import SurfaceMesh, confident_part
 
 MATCH_BEFORE_S = 0.1
@@ -245,15 +245,25 @@ def mask_curve(
     (``surface.confident_part`` at ``fraction * sigma_f``), one dict per fraction with its
     ``max_std_fraction``. ``mesh`` must carry its vertex std and have been masked at no
     stricter a fraction than these (a stricter mask keeps a subset of its faces; a looser one
-    would need faces it no longer has). Empty without a mesh with std, or without truth."""
+    would need faces it no longer has). Empty without a mesh with std, or without truth.
+
+    The true surface and the mesh are sampled once (the samples of the whole mesh that lie on
+    the kept faces are an area-uniform sample of the kept part), so the rows cost a k-d tree
+    and the phantom patches each: scoring each kept mesh afresh took about a second a row."""
     if mesh is None or mesh.std is None or not truth or not truth.get("scene"):
         return []
     if not (math.isfinite(sigma_f) and sigma_f > 0):
         raise InputDataError(f"mask_curve: sigma_f must be a positive number, got {sigma_f!r}")
+    ts = _sample_truth(_scene(truth), truth, np.zeros((0, 3)), np.random.default_rng(0))
+    ms = None if mesh.is_empty else _sample_mesh(mesh, ts)
     rows = []
     for frac in fractions:
-        kept = mesh if mesh.is_empty else confident_part(mesh, float(frac) * sigma_f)
-        scores = surface_scores(kept, truth)
+        if ms is None:
+            scores = _mesh_free_scores(ts, touched=len(ts.touched) > 0, told=False)
+        else:
+            keep = np.all(mesh.std[mesh.faces] <= float(frac) * sigma_f, axis=1)
+            kept = confident_part(mesh, float(frac) * sigma_f)
+            scores = _mesh_scores(kept, ms.restrict(keep), ts)
         rows.append({"max_std_fraction": float(frac), **{k: scores[k] for k in CURVE_KEYS}})
     return rows
 
@@ -368,6 +378,151 @@ def _near(points: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
     return d <= radius
 
 
+@dataclasses.dataclass(frozen=True)
+class _TruthSample:
+    """The true surface of a scene sampled once, for scoring one mesh or many parts of one.
+
+    ``near_touch``: the samples within the touched radius of a true touch (the surface a
+    touch-built map is asked for); ``near`` and ``told``: which of those lie within the near
+    radius of a true touch / of a reported one."""
+
+    scene: Any
+    touched: np.ndarray
+    true_pts: np.ndarray
+    near_touch: np.ndarray
+    near: np.ndarray
+    told: np.ndarray
+    touched_near_m2: float
+    told_near_m2: float
+    touched_radius_m: float
+    missing_m: float
+    phantom_m: float
+
+
+@dataclasses.dataclass(frozen=True)
+class _MeshSample:
+    """Area-uniform samples of a mesh: points, the face each lies on, their distance to the
+    world, and which lie within the touched radius of a true touch."""
+
+    points: np.ndarray
+    face: np.ndarray
+    to_world: np.ndarray
+    near_touch: np.ndarray
+
+    def restrict(self, keep_faces: np.ndarray) -> _MeshSample:
+        """The samples on the faces ``keep_faces`` (bool per face) keeps."""
+        sel = keep_faces[self.face]
+        return _MeshSample(self.points[sel], self.face[sel], self.to_world[sel],
+                           self.near_touch[sel])  # fmt: skip
+
+
+def _sample_truth(
+    scene,
+    truth: dict,
+    reported: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    touched_radius_m: float = 0.5,
+    near_radius_m: float = 0.2,
+    spacing_m: float = 0.02,
+    seed: int = 0,
+    missing_m: float = 0.1,
+    phantom_m: float = 0.15,
+) -> _TruthSample:
+    touched = touched_points(truth)
+    area = _true_area(scene)
+    true_pts = scene.sample_surface(rng, int(min(50_000, max(2000, area / spacing_m**2))))
+    lo, hi = np.asarray(scene.region_min), np.asarray(scene.region_max)
+    true_pts = true_pts[np.all((true_pts >= lo) & (true_pts <= hi), axis=1)]
+    near_touch = _near(true_pts, touched, touched_radius_m)
+    b = true_pts[near_touch]
+    return _TruthSample(
+        scene=scene,
+        touched=touched,
+        true_pts=true_pts,
+        near_touch=near_touch,
+        near=_near(b, touched, near_radius_m),
+        told=_near(b, reported, near_radius_m),
+        touched_near_m2=touched_area(scene, touched, near_radius_m, seed=seed),
+        told_near_m2=touched_area(scene, reported, near_radius_m, seed=seed),
+        touched_radius_m=touched_radius_m,
+        missing_m=missing_m,
+        phantom_m=phantom_m,
+    )
+
+
+def _sample_mesh(mesh: SurfaceMesh, ts: _TruthSample, *, spacing_m: float = 0.02,
+                 seed: int = 0) -> _MeshSample:  # fmt: skip
+    v, f = mesh.vertices, mesh.faces
+    mesh_area = 0.5 * np.linalg.norm(
+        np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1
+    )
+    n_mesh = int(min(50_000, max(2000, mesh_area.sum() / spacing_m**2)))
+    pts, face = sample_mesh_faces(v, f, n_mesh, seed=seed)
+    return _MeshSample(
+        pts, face, distance_to_world(ts.scene, pts), _near(pts, ts.touched, ts.touched_radius_m)
+    )
+
+
+def _mesh_free_scores(ts: _TruthSample | None, *, touched: bool, told: bool) -> dict[str, Any]:
+    """The scores of no mesh: nothing drawn, so all the touched surface is missing."""
+    nan: dict[str, Any] = {
+        k: math.nan
+        for k in (
+            "chamfer_m", "chamfer_full_m", "shape_error_m", "mesh_to_truth_median_m",
+            "truth_to_mesh_median_m", "phantom_area_m2", "phantom_max_patch_m2",
+        )
+    }  # fmt: skip
+    nan["missing_share"] = 1.0 if touched else math.nan
+    nan["missing_share_near"] = nan["missing_share"]
+    nan["phantom_patches"] = []
+    touched_near = math.nan if ts is None else ts.touched_near_m2
+    told_near = math.nan if ts is None else ts.told_near_m2
+    nan["touched_area_near_m2"] = touched_near
+    nan["missing_area_near_m2"] = touched_near if touched else math.nan
+    nan["missing_share_near_detected"] = 1.0 if told else math.nan
+    nan["touched_area_near_detected_m2"] = told_near
+    nan["missing_area_near_detected_m2"] = told_near if told else math.nan
+    return nan
+
+
+def _mesh_scores(mesh: SurfaceMesh, ms: _MeshSample, ts: _TruthSample) -> dict[str, Any]:
+    """The surface metrics of ``mesh`` (samples ``ms``) but the whole-mesh ones
+    (``chamfer_full_m``, ``shape_error_m``)."""
+    from scipy.spatial import cKDTree
+
+    b = ts.true_pts[ts.near_touch]
+    if b.size and len(ms.points):
+        d_b, _ = cKDTree(ms.points).query(b)
+    else:
+        d_b = np.full(len(b), np.inf)
+    if b.size:
+        t2m, missing = float(np.median(d_b)), float(np.mean(d_b > ts.missing_m))
+        missing_near = float(np.mean(d_b[ts.near] > ts.missing_m)) if ts.near.any() else math.nan
+        missing_told = float(np.mean(d_b[ts.told] > ts.missing_m)) if ts.told.any() else math.nan
+    else:
+        t2m, missing, missing_near, missing_told = math.nan, math.nan, math.nan, math.nan
+    patches = phantom_patches(
+        mesh.vertices, mesh.faces, lambda p: distance_to_world(ts.scene, p),
+        threshold=ts.phantom_m,
+    )  # fmt: skip
+    return {
+        "chamfer_m": chamfer_distance(ms.points[ms.near_touch], b),
+        "mesh_to_truth_median_m": float(np.median(ms.to_world)) if len(ms.points) else math.nan,
+        "truth_to_mesh_median_m": t2m,
+        "missing_share": missing,
+        "missing_share_near": missing_near,
+        "touched_area_near_m2": ts.touched_near_m2,
+        "missing_area_near_m2": missing_near * ts.touched_near_m2,
+        "missing_share_near_detected": missing_told,
+        "touched_area_near_detected_m2": ts.told_near_m2,
+        "missing_area_near_detected_m2": missing_told * ts.told_near_m2,
+        "phantom_area_m2": float(sum(p.area_m2 for p in patches)),
+        "phantom_max_patch_m2": patches[0].area_m2 if patches else 0.0,
+        "phantom_patches": [p.as_dict() for p in patches[:PHANTOM_LISTED]],
+    }
+
+
 def surface_scores(
     mesh: SurfaceMesh | None,
     truth: dict,
@@ -385,79 +540,27 @@ def surface_scores(
     when nothing was touched (a contact-free flight has no surface to miss). ``detected``:
     (k, 3) contact points of the true touches the detector reported (None: none)."""
     reported = np.zeros((0, 3)) if detected is None else np.asarray(detected, float).reshape(-1, 3)
-    nan: dict[str, Any] = {
-        k: math.nan
-        for k in (
-            "chamfer_m", "chamfer_full_m", "shape_error_m", "mesh_to_truth_median_m",
-            "truth_to_mesh_median_m", "phantom_area_m2", "phantom_max_patch_m2",
-        )
-    }  # fmt: skip
-    nan["missing_share"] = 1.0 if len(touched_points(truth)) else math.nan
-    nan["missing_share_near"] = nan["missing_share"]
-    nan["phantom_patches"] = []
-    scene = _scene(truth) if "scene" in truth else None
-    touched_near = (
-        math.nan if scene is None
-        else touched_area(scene, touched_points(truth), near_radius_m, seed=seed)
-    )  # fmt: skip
-    nan["touched_area_near_m2"] = touched_near
-    nan["missing_area_near_m2"] = touched_near if len(touched_points(truth)) else math.nan
-    told_near = (
-        math.nan if scene is None else touched_area(scene, reported, near_radius_m, seed=seed)
-    )
-    nan["missing_share_near_detected"] = 1.0 if len(reported) else math.nan
-    nan["touched_area_near_detected_m2"] = told_near
-    nan["missing_area_near_detected_m2"] = told_near if len(reported) else math.nan
-    if mesh is None or mesh.is_empty or scene is None:
-        return nan
+    has_touch = len(touched_points(truth)) > 0
+    if "scene" not in truth:
+        return _mesh_free_scores(None, touched=has_touch, told=len(reported) > 0)
     rng = np.random.default_rng(seed)
-    area = _true_area(scene)
-    true_pts = scene.sample_surface(rng, int(min(50_000, max(2000, area / spacing_m**2))))
-    lo, hi = np.asarray(scene.region_min), np.asarray(scene.region_max)
-    true_pts = true_pts[np.all((true_pts >= lo) & (true_pts <= hi), axis=1)]
-    v, f = mesh.vertices, mesh.faces
-    mesh_area = 0.5 * np.linalg.norm(
-        np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1
-    )
-    n_mesh = int(min(50_000, max(2000, mesh_area.sum() / spacing_m**2)))
-    mesh_pts = sample_mesh_surface(v, f, n_mesh, seed=seed)
-    touched = touched_points(truth)
-    a = mesh_pts[_near(mesh_pts, touched, touched_radius_m)]
-    b = true_pts[_near(true_pts, touched, touched_radius_m)]
+    ts = _sample_truth(
+        _scene(truth), truth, reported, rng, touched_radius_m=touched_radius_m,
+        near_radius_m=near_radius_m, spacing_m=spacing_m, seed=seed, missing_m=missing_m,
+        phantom_m=phantom_m,
+    )  # fmt: skip
+    if mesh is None or mesh.is_empty:
+        return _mesh_free_scores(ts, touched=has_touch, told=len(reported) > 0)
+    ms = _sample_mesh(mesh, ts, spacing_m=spacing_m, seed=seed)
     verts = mesh.vertices
     if len(verts) > 20000:
         verts = verts[rng.choice(len(verts), 20000, replace=False)]
-    from scipy.spatial import cKDTree
-
-    to_truth = distance_to_world(scene, mesh_pts)
-    if b.size:
-        d_b, _ = cKDTree(mesh_pts).query(b)
-        t2m, missing = float(np.median(d_b)), float(np.mean(d_b > missing_m))
-        near = _near(b, touched, near_radius_m)
-        missing_near = float(np.mean(d_b[near] > missing_m)) if near.any() else math.nan
-        told = _near(b, reported, near_radius_m)
-        missing_told = float(np.mean(d_b[told] > missing_m)) if told.any() else math.nan
-    else:
-        t2m, missing, missing_near, missing_told = math.nan, math.nan, math.nan, math.nan
-    patches = phantom_patches(
-        mesh.vertices, mesh.faces, lambda p: distance_to_world(scene, p), threshold=phantom_m
-    )
+    scores = _mesh_scores(mesh, ms, ts)
     return {
-        "chamfer_m": chamfer_distance(a, b),
-        "chamfer_full_m": chamfer_distance(mesh_pts, true_pts),
-        "shape_error_m": float(np.mean(distance_to_world(scene, verts))),
-        "mesh_to_truth_median_m": float(np.median(to_truth)),
-        "truth_to_mesh_median_m": t2m,
-        "missing_share": missing,
-        "missing_share_near": missing_near,
-        "touched_area_near_m2": touched_near,
-        "missing_area_near_m2": missing_near * touched_near,
-        "missing_share_near_detected": missing_told,
-        "touched_area_near_detected_m2": told_near,
-        "missing_area_near_detected_m2": missing_told * told_near,
-        "phantom_area_m2": float(sum(p.area_m2 for p in patches)),
-        "phantom_max_patch_m2": patches[0].area_m2 if patches else 0.0,
-        "phantom_patches": [p.as_dict() for p in patches[:PHANTOM_LISTED]],
+        "chamfer_m": scores.pop("chamfer_m"),
+        "chamfer_full_m": chamfer_distance(ms.points, ts.true_pts),
+        "shape_error_m": float(np.mean(distance_to_world(ts.scene, verts))),
+        **scores,
     }
 
 

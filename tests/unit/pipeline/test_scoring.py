@@ -317,7 +317,7 @@ def test_a_stricter_mask_trades_phantom_surface_for_missing_surface():
     import numpy as np
 
     from groundstation.errors import InputDataError
-    from groundstation.mapping.surface import SurfaceMesh
+    from groundstation.mapping.surface import SurfaceMesh, confident_part
     from groundstation.pipeline.scoring import CURVE_KEYS, mask_curve
 
     # the wall x = 1 touched at (1, 0, 1), meshed on its face over y, z in [-0.5, 0.5] x
@@ -352,6 +352,14 @@ def test_a_stricter_mask_trades_phantom_surface_for_missing_surface():
     # in sigma_f units: the same curve for a kernel of prior std 2 and a std twice as large
     doubled = SurfaceMesh(v, faces, mesh.normals, 2.0 * std)
     assert mask_curve(doubled, truth, 2.0, (0.5,))[0] == rows[0]
+    # one sample of the mesh and the truth serves every row: a mask that keeps every face
+    # scores the mesh exactly as surface_scores does
+    loose = mask_curve(mesh, truth, 1.0, (1.0,))[0]
+    assert loose == {"max_std_fraction": 1.0, **{k: full[k] for k in CURVE_KEYS}}
+    kept = surface_scores(confident_part(mesh, 0.5), truth)
+    for k in ("missing_share", "missing_share_near", "chamfer_m", "mesh_to_truth_median_m"):
+        assert rows[0][k] == pytest.approx(kept[k], abs=0.01)  # a fresh sample agrees
+    assert rows[0]["phantom_area_m2"] == kept["phantom_area_m2"]
     assert mask_curve(mesh, {"contacts": []}, 1.0, (0.5,)) == []
     assert mask_curve(SurfaceMesh(v, faces, mesh.normals), truth, 1.0, (0.5,)) == []
     with pytest.raises(InputDataError, match="sigma_f"):
