@@ -109,6 +109,7 @@ def training_policy(
         plane_max_p_false=mapping.plane_max_p_false,
         plane_guard_m=mapping.plane_guard_m,
         plane_guard_solid_m=mapping.plane_guard_solid_m,
+        internal_guard_m=mapping.internal_guard_m,
         settled_voxel_m=mapping.settled_voxel_m,
         companion_s=mapping.companion_s,
         body_clearance=mapping.body_clearance,

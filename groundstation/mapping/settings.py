@@ -245,6 +245,15 @@ class MappingSettings:
         missing within 0.2 m by area 3.0 -> 2.8 % (controls 2.5 -> 2.0 %); gusts flagged 370
         of 372 both, touches 14 -> 15 of 811. One simple yard flight drew a new 0.26 m² bulge in
         front of a thin wall whose end face lost a plane point past its side.
+    internal_guard_m : float
+        An internal row (``inside_value``, ``contact.internal_depth_m`` behind a contact along
+        its normal) that a touch the detector believes (prior ``P(false)`` at most
+        ``plane_max_p_false``), of another event within this of it and a face of the same
+        solid, places outside its own surface (in front of its tangent plane by more than 2
+        cm) is left out (``training._past_edge``; 0: every internal row kept). A touch at an
+        edge whose normal is tilted across it puts its internal row past the other face, in
+        open space, with a value that says 'inside': the field goes negative there and the
+        surface bulges round it.
     lone_reach_m : float
         An event no other event's contact lies within this of (its contacts' centroid) is
         *uncorroborated*, and decided on the ``mapper.lone_flag_p`` line instead of
@@ -462,6 +471,7 @@ class MappingSettings:
     plane_max_p_false: float = 0.3
     plane_guard_m: float = 0.5
     plane_guard_solid_m: float = 1.0
+    internal_guard_m: float = 0.5
     lone_reach_m: float = 0.5
     model: Literal["robust", "gpis"] = "robust"
     lengthscale: float = 0.25
@@ -571,6 +581,7 @@ class MappingSettings:
             "lone_reach_m",
             "plane_guard_m",
             "plane_guard_solid_m",
+            "internal_guard_m",
         ):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"mapping.{name} must be >= 0, got {getattr(self, name)!r}")

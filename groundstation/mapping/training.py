@@ -166,6 +166,7 @@ class TrainingPolicy:
     plane_max_p_false: float = 1.0
     plane_guard_m: float = 0.5
     plane_guard_solid_m: float = 0.5
+    internal_guard_m: float = 0.0
     settled_voxel_m: float = 0.1
     companion_s: float = 0.0
     body_clearance: bool = False
@@ -385,7 +386,13 @@ def build_training_set(
     cell_g = g_of[cfirst[corder]]
     cell_lab = lab[cfirst[corder]]
     cell_ids = _split(col.ids[shape], cell, C)
-    kept = np.flatnonzero(~is_settled[cell_g])
+    guard = prior <= p.plane_max_p_false  # touches whose plane may say where a surface ends
+    outside = np.zeros(C, dtype=bool)  # internal rows another touch places outside its surface
+    if p.internal_guard_m > 0 and d == 3:
+        inner = np.flatnonzero(cell_lab < 0)
+        outside[inner] = _past_edge(cell_x[inner], cell_g[inner], cen, nrm, guard,
+                                    p.internal_guard_m)  # fmt: skip
+    kept = np.flatnonzero(~is_settled[cell_g] & ~outside)
     rows_X.append(cell_x[kept])
     rows_y.append(np.where(cell_lab[kept] == 0, 0.0, p.inside_value))
     rows_s2.append(cell_s2[kept])
@@ -394,7 +401,7 @@ def build_training_set(
     rows_g.append(cell_g[kept])
 
     # settled groups: their voxels pooled per settled voxel and face, precision-weighted
-    pooled = np.flatnonzero(is_settled[cell_g])
+    pooled = np.flatnonzero(is_settled[cell_g] & ~outside)
     if pooled.size:
         face = _faces(cell_n[pooled])
         pkey = np.column_stack([
@@ -468,7 +475,6 @@ def build_training_set(
     np.maximum.at(t_hi, g_of, col.t[shape])
     t_span = list(zip(t_lo.tolist(), t_hi.tolist(), strict=True))
     n_rows = sum(len(x) for x in rows_X)
-    guard = prior <= p.plane_max_p_false  # touches whose plane may say where a surface ends
     companion = None
     crossed = np.zeros(G, dtype=bool)
     if p.companion_s > 0:
@@ -786,22 +792,25 @@ def _swept(
     if p.sweep_disc_m > 0 and rim_of.size:  # only the groups the points left standing
         rims = _rims(centres[rim_of], normals[rim_of], p.sweep_disc_m).reshape(-1, 3)
         owner = np.repeat(rim_of, DISC_POINTS)
-        keep = ~_past_edge(rims, owner, centres, normals, guard, p.sweep_disc_m)
+        keep = ~_past_edge(
+            rims, owner, centres, normals, guard, PLANE_GUARD_REACHES * p.sweep_disc_m
+        )
         _inside_body(tree, free_t, rims[keep], normals[owner[keep]], owner[keep], t_span, p, out)
     return out
 
 
 def _past_edge(
     pts: np.ndarray, owner: np.ndarray, centres: np.ndarray, normals: np.ndarray,
-    guard: np.ndarray, reach: float,
+    guard: np.ndarray, radius: float,
 ) -> np.ndarray:  # fmt: skip
-    """(k,) bool: probe ``pts[k]`` of group ``owner[k]`` lies past an edge: a ``guard`` group
-    other than its own, with a contact plane and its centroid within ``PLANE_GUARD_REACHES *
-    reach`` of the probe, places it outside its surface (by more than ``PLANE_BEYOND_TOL_M``
-    along its normal), as ``_plane_keep`` does, where the two touches are faces of one solid
-    (each lies on or behind the other's tangent plane). The deck's end face touched near its lower
-    edge has half its disc below the deck, where the vehicle flies later; the underside's
-    touches say that the end face stops there."""
+    """(k,) bool: point ``pts[k]`` of group ``owner[k]`` lies past an edge: a ``guard`` group
+    other than its own, with a contact plane and its centroid within ``radius`` of the point,
+    places it outside its surface (by more than ``PLANE_BEYOND_TOL_M`` along its normal), as
+    ``_plane_keep`` does, where the two touches are faces of one solid (each lies on or behind
+    the other's tangent plane). The deck's end face touched near its lower edge has half its
+    sweep disc below the deck, where the vehicle flies later; the underside's touches say that
+    the end face stops there. A touch near an edge with its normal tilted across it has its
+    internal row (behind the contact along that normal) past the other face."""
     out = np.zeros(len(pts), dtype=bool)
     ok = guard & np.all(np.isfinite(centres), axis=1) & np.any(normals != 0.0, axis=1)
     by = np.flatnonzero(ok)
@@ -809,7 +818,7 @@ def _past_edge(
         return out
     from scipy.spatial import cKDTree
 
-    near = cKDTree(centres[by]).query_ball_point(pts, PLANE_GUARD_REACHES * reach)
+    near = cKDTree(centres[by]).query_ball_point(pts, radius)
     count = np.fromiter(map(len, near), np.int64, len(near))
     i = np.repeat(np.arange(len(near)), count)  # (probe, guard) pairs in reach
     j = by[np.fromiter(itertools.chain.from_iterable(near), np.int64, int(count.sum()))]

@@ -808,6 +808,45 @@ def test_a_plane_point_stops_where_a_touch_within_the_guards_says_the_surface_en
     assert [len(x) for x in off] == [4, 4, 4]
 
 
+def test_an_internal_row_another_face_of_the_solid_places_outside_it_is_left_out():
+    """``mapping.internal_guard_m``: a box whose top is z = 1 and side x = 0 (solid at x > 0,
+    z < 1). A side touch 1 cm below the top edge with its normal tilted 30 deg down across it
+    puts its internal row 0.1 m back along that normal, 4 cm above the top: the top's touch
+    says that is open space, so the row goes. A level side touch's row stays, and so does
+    every row without the guard, or where the 'top' is a believed gust in front of the side
+    (no face of its solid), or a touch the detector doubts."""
+    tilt = np.array([-math.cos(math.radians(30)), 0.0, -math.sin(math.radians(30))])
+
+    def touch(i, at, normal, p_false=0.0):
+        at, normal = np.asarray(at, dtype=float), np.asarray(normal, dtype=float)
+        return [
+            Observation(2 * i, int(5e9 * i), at, 0.0, normal, i, p_false, sigma_m=0.01),
+            Observation(2 * i + 1, int(5e9 * i), at - 0.1 * normal, -1.0, normal, i, p_false,
+                        sigma_m=0.01),
+        ]  # fmt: skip
+
+    side = touch(0, [0.0, 0.0, 0.99], tilt)
+    level = touch(1, [0.0, 1.0, 0.9], [-1.0, 0.0, 0.0])
+    top = touch(2, [0.3, 0.2, 1.0], [0.0, 0.0, 1.0])
+
+    def internal(obs, guard=0.5, plane_max_p_false=0.3):
+        policy = TrainingPolicy(internal_guard_m=guard, plane_max_p_false=plane_max_p_false)
+        ts = build_training_set(obs, policy)
+        inner = ts.y < 0
+        return sorted(ts.groups.row_group[inner].tolist()), ts
+
+    groups_kept, ts = internal(side + level + top)
+    assert groups_kept == [1, 2]  # the tilted side touch's row is gone; the others stay
+    assert ts.X[(ts.y == 0.0) & (ts.groups.row_group == 0)].shape[0] == 1  # its contact stays
+    assert internal(side + level + top, guard=0.0)[0] == [0, 1, 2]
+    assert internal(side + level + top, guard=0.1)[0] == [0, 1, 2]  # the top is 0.3 m off
+    doubted = [dataclasses.replace(o, p_false=0.5) for o in top]
+    assert internal(side + level + doubted)[0] == [0, 1, 2]
+    # the same 'top' touch 0.3 m in front of the side (x < 0): open space, no face of the box
+    gust = touch(2, [-0.3, 0.2, 1.0], [0.0, 0.0, 1.0])
+    assert internal(side + level + gust)[0] == [0, 1, 2]
+
+
 def wavy_wall(seed=0, n=250):
     """Contacts on a wavy wall x = 0.08 sin(2 pi z / 0.7) over 3 m x 3 m, an internal point
     0.1 m behind each, free points in front: a surface whose length scale the data identify."""
