@@ -10,7 +10,8 @@ is measured and printed, asserted as "within 3 lines"):
    (the exact comparison with the detector core is in ``test_detector_catchup.py``);
 2. the active recorder is SIGKILLed: the standby takes over in a new segment; the recorded
    IMU stream has no hole there;
-3. the mapper is SIGKILLed: it restarts, restores every observation and meshes again;
+3. the mapper is SIGKILLed: it restarts, restores every observation from the recording being
+   written and meshes again; its last fit holds every observation recorded up to it;
 4. the vehicle goes silent (SITL stopped 2.5 s): ``NO IMU``, ``LINK SILENT``;
 5. the link process stalls 4 s (SIGSTOP): the SITL's pty overflows and drops whole MAVLink
    frames, which the link counts from the MAVLink sequence numbers: ``LINK LOSS``;
@@ -152,8 +153,18 @@ def test_faults_in_a_live_session_are_shown_and_lose_nothing(tmp_path):
     # 6. the mapper meshed again after its restart
     logs = [e.payload["message"] for _, e in _recorded(rec_path, ("log",))]
     assert any(m.startswith("restored ") for m in logs), logs[-10:]
-    fits = [e.payload["fit_index"] for _, e in _recorded(rec_path, ("mapper.fit",))]
-    assert fits.count(0) >= 2, f"no fit after the mapper restart: {fits}"
+    fits = [e for _, e in _recorded(rec_path, ("mapper.fit",))]
+    indices = [f.payload["fit_index"] for f in fits]
+    assert indices.count(0) >= 2, f"no fit after the mapper restart: {indices}"
+    last = fits[-1]
+    held = set(last.arrays["ids"].tolist())
+    due = {
+        e.payload["id"]
+        for e in recorded
+        if e.topic == "observations" and e.header.source_ns <= last.payload["data_ns"]
+    }
+    assert len(due) > 10, due
+    assert due <= held, f"{len(due - held)} recorded observations missing from the last fit"
 
     lines = status_lines(run.out)
     assert any("RESTARTED" in ln for ln in lines)

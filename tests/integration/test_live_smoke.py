@@ -8,7 +8,6 @@ The SITL flies its scripted survey of the wall at real time; frames are counted,
 from __future__ import annotations
 
 import json
-import re
 import signal
 import subprocess
 from pathlib import Path
@@ -118,76 +117,3 @@ def test_live_session_against_the_sitl_records_everything_with_zero_gaps(tmp_pat
         assert counts.get("observations", 0) > 0
         assert counts.get("observations", 0) == summary["observations"]
     print(f"\n{lines[-1]}\nrecorded: {counts}")
-
-
-def _pid(err_path: Path, name: str, nth: int = 0) -> int | None:
-    """The pid of the ``nth`` start of worker ``name`` (``started NAME (pid N)`` on stderr)."""
-    import re
-
-    pids = [
-        int(m.group(1))
-        for ln in err_path.read_text().splitlines()
-        if (m := re.match(rf"started {name} \(pid (\d+)", ln))
-    ]
-    return pids[nth] if len(pids) > nth else None
-
-
-@pytest.mark.skipif(
-    not (_available(DETECTOR_MODULE) and _available(MAPPER_MODULE)), reason="no mapping stack"
-)
-def _mesh_indices(folder, first_line: int = 0) -> list[int]:
-    """The mesh numbers the status lines of ``live.out`` showed, from line ``first_line``."""
-    lines = status_lines(folder / "live.out")[first_line:]
-    return [int(m.group(1)) for ln in lines if (m := re.search(r"mesh #(\d+) ", ln))]
-
-
-def test_a_killed_mapper_is_restarted_and_loses_no_observation(tmp_path):
-    """SIGKILL the mapper mid-session: the supervisor restarts it, it restores from the
-    recording being written, and its last fit holds every observation recorded up to it."""
-    import os
-
-    from groundstation.bus.envelope import from_bytes
-
-    rec_path = tmp_path / "live.mcap"
-    err = tmp_path / "live.err"
-    killed: list[int] = []
-
-    def kill_mapper_once_observations_flow():
-        wait_for(lambda: _pid(err, "mapper") is not None, 60, "the mapper to start", poll=0.2)
-        wait_for(lambda: len(status_lines(tmp_path / "live.out")) >= 20, 120, "20 s of session",
-                 poll=0.5)  # fmt: skip
-        # after its fourth mesh (a cold first fit takes tens of seconds on a loaded machine),
-        # so that a mesh #0-#2 shown after the kill can only be the restarted mapper's (the
-        # status line shows the newest mesh once a second: several may come out in between)
-        wait_for(lambda: any(i >= 3 for i in _mesh_indices(tmp_path)), 240, "a fourth mesh",
-                 poll=0.5)  # fmt: skip
-        pid = _pid(err, "mapper")
-        n = len(status_lines(tmp_path / "live.out"))
-        os.kill(pid, signal.SIGKILL)
-        killed.append(pid)
-        wait_for(lambda: _pid(err, "mapper", 1) is not None, 60, "the mapper restart", poll=0.2)
-        # the restarted mapper's first meshes (a cold fit: tens of seconds on a loaded machine)
-        wait_for(lambda: any(i <= 2 for i in _mesh_indices(tmp_path, n)), 240,
-                 "a mesh from the restarted mapper", poll=0.5)  # fmt: skip
-
-    rc, summary, lines, stderr = run_live_against_sitl(
-        tmp_path,
-        45,
-        ["--scene", "wall", "--pilot", "script:survey", "--duration", "400"],
-        ["--record", str(rec_path), "--no-viewer"],
-        during=kill_mapper_once_observations_flow,
-    )
-    assert killed, "the mapper was never killed"
-    assert "mapper exited -9" in stderr and "mapper restarting" in stderr
-    with open_recording(rec_path) as rec:
-        obs = [from_bytes(m.data) for m in rec.messages("observations")]
-        fits = [from_bytes(m.data) for m in rec.messages("mapper.fit")]
-        logs = [from_bytes(m.data).payload.get("message", "") for m in rec.messages("log")]
-    assert any(m.startswith("restored ") for m in logs), logs[-20:]
-    last = fits[-1]
-    held = set(last.arrays["ids"].tolist())
-    due = {e.payload["id"] for e in obs if e.header.source_ns <= last.payload["data_ns"]}
-    assert len(due) > 10
-    assert due <= held, f"{len(due - held)} recorded observations missing from the last fit"
-    # the restarted mapper counted fits from 0 again: its fits follow the kill
-    assert [f.payload["fit_index"] for f in fits].count(0) == 2
