@@ -104,8 +104,9 @@ def test_replay_serves_the_web_viewer_on_loopback_and_the_page_shows_the_mesh(tm
     chromium_path()
     rrd = tmp_path / "replay.rrd"
     proc = start(
-        ["replay", str(ROOT / "replay_logs/wall_survey.mcap"), "--quiet", "--viewer",
-         "rerun", "--web-port", "0", "--grpc-port", "0", "--serve-s", "600", "--rrd", str(rrd)],
+        ["replay", str(ROOT / "replay_logs/wall_survey.mcap"), "--end", "30", "--quiet",
+         "--viewer", "rerun", "--web-port", "0", "--grpc-port", "0", "--serve-s", "600",
+         "--rrd", str(rrd)],
         tmp_path / "out", tmp_path / "err",
     )  # fmt: skip
     try:
