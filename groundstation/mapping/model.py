@@ -36,6 +36,7 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from groundstation.contact.detector import Observation
 from groundstation.contact.vehicle import VehicleSettings
@@ -326,7 +327,7 @@ class SurfaceModel:
         if learn:  # theta is shared by every tile: learnt where the most surface is
             region = self._learning_layout()
             key = self._learning_tile(ts, start, region)
-            rows = region.members(ts.X, key)
+            rows = self._learning_rows(ts, region.members(ts.X, key))
             X, y, s2, V, groups, st, _ = self._subset(ts, rows, start)
             # the kernel step weighs each row by its event's decision: decide the events that
             # are new since the last fit with the current kernel first, so that a gust still
@@ -398,6 +399,18 @@ class SurfaceModel:
         decided true)."""
         trusted = p_false <= groups.lines(self.decide_p)
         return int(np.sum(trusted)) >= self.mapping.learn_min_events
+
+    def _learning_rows(self, ts: TrainingSet, rows: np.ndarray) -> np.ndarray:
+        """The rows of the learning tile the kernel step sees: every shape row, and the
+        free-space rows within ``learn_free_reach_m`` of one (all of them with 0)."""
+        reach = self.mapping.learn_free_reach_m
+        free = ts.y[rows] > 0.0
+        if reach <= 0.0 or free.all() or not free.any():
+            return rows
+        near = cKDTree(ts.X[rows[~free]]).query(ts.X[rows[free]], distance_upper_bound=reach)[0]
+        keep = ~free
+        keep[np.flatnonzero(free)[np.isfinite(near)]] = True
+        return rows[keep]
 
     @staticmethod
     def _learning_tile(ts: TrainingSet, start: np.ndarray, layout: TileLayout) -> tuple:

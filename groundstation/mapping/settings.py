@@ -132,6 +132,13 @@ class MappingSettings:
         space alone fits any length scale, best the cap, and one touch cannot pin it: a kernel
         learnt on it flagged that touch for being alone. On the tuning flights, 3 against 1:
         true touches flagged 5.9 % -> 1.4 % (flight mean), gusts flagged 99.4 % both.
+    learn_free_reach_m : float
+        The kernel step sees only the free-space rows within this distance of a shape row
+        (contact, internal or tangent) of its learning tile (mixture; 0: every free-space row).
+        Free space far from every touch says only "no surface here", which the smoothest field
+        fits best: with few touches amid a long path it pulls the length scale learnt towards
+        the cap, and a map whose touches were cut short keeps that smooth kernel. The fits
+        themselves keep every row.
     flag_inside : bool
         Whether a contact event that the rest of the data places *inside* the structure (its
         leave-out residual says the surface lies farther out than the model predicts) counts as
@@ -458,6 +465,7 @@ class MappingSettings:
     flag_inside: bool = False
     mixture_max_iter: int = 12
     learn_min_events: int = 3
+    learn_free_reach_m: float = 0.0
     tangent_slope_noise: float = 1.0
     tile_m: float = 1.0
     learn_tile_m: float = 2.0
@@ -579,6 +587,7 @@ class MappingSettings:
             "settle_after_s",
             "settle_evidence_nats",
             "lone_reach_m",
+            "learn_free_reach_m",
             "plane_guard_m",
             "plane_guard_solid_m",
             "internal_guard_m",

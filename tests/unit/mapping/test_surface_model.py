@@ -177,6 +177,33 @@ def test_a_kernel_the_data_identify_is_taken_with_or_without_the_hold(radius):
     assert fits[1] == fits[0] and not fits[1][2]
 
 
+def survey_path(start_id, t0, points=200):
+    """Free points of a path circling 1.2-1.8 m from the origin: no surface anywhere near."""
+    out = []
+    for k in range(points):
+        a, r = 0.05 * k, 1.2 + 0.6 * (k % 20) / 20
+        p = np.array([r * np.cos(a), r * np.sin(a), 0.2 + 0.1 * (k % 10)])
+        out.append(Observation(start_id + k, int((t0 + 0.1 * k) * S), p, 1.0, np.zeros(3), -1,
+                               0.0))  # fmt: skip
+    return out
+
+
+def test_free_space_far_from_every_touch_does_not_smooth_the_kernel():
+    # a few touches of a pillar, then a long path far from it: "no surface here" is fitted
+    # best by the smoothest field, so with every free row in the kernel step the length scale
+    # grows with the path flown, not with anything the surface shows
+    touches = pillar_flight(0.3, seed=1, events=6)
+    flown = touches + survey_path(len(touches), touches[-1].t_ns / S + 1.0)
+    ell = {}
+    for reach in (0.0, 0.5):
+        for name, obs in (("touches", touches), ("flown", flown)):
+            model = SurfaceModel(MappingSettings(learn_free_reach_m=reach), SurfaceSettings())
+            model.fit(obs)
+            ell[reach, name] = model.lengthscale_
+    assert ell[0.0, "flown"] > ell[0.0, "touches"] + 0.02  # every free row: pulled smoother
+    assert ell[0.5, "flown"] == pytest.approx(ell[0.5, "touches"], abs=1e-3)  # only the near
+
+
 def test_only_tiles_whose_data_changed_are_refitted():
     obs = box_flight() + box_flight((6.0, 0.0, 0.0), seed=1, gusts=())
     obs = [
