@@ -138,7 +138,17 @@ class MappingSettings:
         Free space far from every touch says only "no surface here", which the smoothest field
         fits best: with few touches amid a long path it pulls the length scale learnt towards
         the cap, and a map whose touches were cut short keeps that smooth kernel. The fits
-        themselves keep every row.
+        themselves keep every row. Off by default, as measured: far free space also holds the
+        length scale up where the contacts are noisy. With 0.5 m on the tuning flights
+        (``bench sessions --seeds 200-202``, gusty flights) the length scale fell by 10 % as a
+        median over flights and by 30 % on MuJoCo's walls and yards (0.20 -> 0.13-0.14 m):
+        flights over 0.1 m² of phantom 2 -> 2 of 31, mean largest patch 0.032 -> 0.033 m²,
+        touched surface missing within 0.2 m 1.9 -> 2.4 % by area (MuJoCo 3.8 -> 4.7 %;
+        controls 0.9 -> 1.8 %), touches flagged 17 -> 14 of 808, gusts flagged 309 -> 308 of
+        309. On reporting seeds 116-118 (a development run after they were reported) it took
+        the two largest patches away (with ``learn_min_events`` 10: 12 -> 10 of 32 over
+        0.1 m², missing by area 3.6 -> 3.9 %). A trade of missing surface for phantom, not a
+        gain: the option is kept so that these runs can be repeated.
     flag_inside : bool
         Whether a contact event that the rest of the data places *inside* the structure (its
         leave-out residual says the surface lies farther out than the model predicts) counts as
