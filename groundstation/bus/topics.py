@@ -244,6 +244,7 @@ _TABLE = [
        {"fit_index": Field("int"), "reliable": Field("bool", optional=True),
         "reasons": Field("list", optional=True), "data_ns": Field("int", optional=True),
         "lag_s": Field("float", optional=True), "fit_s": Field("float", optional=True),
+        "timings": Field("dict", optional=True),
         "hyperparameters": Field("dict", optional=True),
         "flagged_events": Field("list", optional=True),
         "awaiting_events": Field("list", optional=True)},
@@ -253,7 +254,8 @@ _TABLE = [
        "other touch corroborates it). reliable/reasons: the fit diagnosis "
        "(mapping.diagnostics; an unreliable fit keeps the last good mesh); data_ns: data time "
        "of the newest observation in the fit; lag_s: data time received minus data_ns when "
-       "published; fit_s: wall seconds of the refit; hyperparameters: lengthscale, ...; "
+       "published; fit_s: wall seconds of the refit; timings: where they went (rows_s, fit_s, "
+       "mesh_s and of it mesh_gp_s, mesh_offset_s; total_s); hyperparameters: lengthscale, ...; "
        "flagged_events: contact event ids flagged as false positives; awaiting_events: those "
        "of them a second touch beside them would keep (mapper.lone_flag_p)."),
     _t("mesh", "mesh", 1, "mapper", "latest", "state",

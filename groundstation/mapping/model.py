@@ -179,7 +179,8 @@ class SurfaceModel:
         Each event's decision: its posterior above its line (``decide_p`` or ``lone_decide_p``).
     mode_ : "exact"
     timings_ : dict
-        ``rows_s``, ``fit_s`` (last fit), ``field_s``, ``mesh_s`` (last mesh), seconds.
+        ``rows_s``, ``fit_s`` (last fit), ``mesh_s`` (last mesh) and, of it, ``mesh_gp_s`` (the
+        tiles' GP means) and ``mesh_offset_s`` (the open-space offset), seconds.
     """
 
     def __init__(
@@ -214,6 +215,7 @@ class SurfaceModel:
         self._layout = TileLayout(mapping.tile_m, 0.0)
         self._settled: set[tuple] = set()
         self.offset_ = OpenSpaceOffset.none()
+        self._mesh_clock: dict[str, float] = {}  # seconds of the mesh being drawn, by part
 
     # ------------------------------------------------------------------ policy steps
 
@@ -701,8 +703,16 @@ class SurfaceModel:
             d, _ = tree.query(q, distance_upper_bound=r)
             return np.isfinite(d)
 
+        clock = self._mesh_clock
+
         def field(q: np.ndarray) -> np.ndarray:
-            return tile.est.predict(q) + self.offset_(q)
+            t0 = time.perf_counter()
+            mean = tile.est.predict(q)
+            t1 = time.perf_counter()
+            offset = self.offset_(q)
+            clock["mesh_gp_s"] += t1 - t0
+            clock["mesh_offset_s"] += time.perf_counter() - t1
+            return mean + offset
 
         band = narrow_band_field(
             field, grid, coarse_factor=self.surface.coarse_factor,
@@ -730,6 +740,7 @@ class SurfaceModel:
         if self.training_set_.X.shape[1] != 3:
             raise InputDataError("mesh() needs 3D data; use predict on a 2D grid instead")
         t0 = time.perf_counter()
+        self._mesh_clock = {"mesh_gp_s": 0.0, "mesh_offset_s": 0.0}
         s = self.spacing_m()
         with blas_threads(self.mapping.blas_threads):
             for tile in self._tiles.values():
@@ -743,7 +754,7 @@ class SurfaceModel:
         mesh = weld_lattice(_concatenate(parts), s)  # neighbours share their boundary plane
         if self.surface.drop_cavities and not mesh.is_empty:
             mesh = _faces_subset(mesh, ~self._cavities(mesh))
-        self.timings_.update(mesh_s=time.perf_counter() - t0)
+        self.timings_.update(mesh_s=time.perf_counter() - t0, **self._mesh_clock)
         return mesh
 
     def _cavities(self, mesh: SurfaceMesh) -> np.ndarray:

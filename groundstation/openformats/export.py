@@ -248,6 +248,7 @@ def result_envelopes(result) -> Iterator[Envelope]:
                 "reasons": [str(r) for r in f.reasons],
                 "data_ns": int(f.data_ns),
                 "fit_s": float(f.timings.get("total_s", 0.0)),
+                "timings": {k: float(v) for k, v in f.timings.items()},
                 "hyperparameters": _jsonable(f.hyperparameters),
                 "flagged_events": [int(e) for e in f.flagged_events],
             }

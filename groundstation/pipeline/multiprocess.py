@@ -98,7 +98,7 @@ def _fit_from(env) -> FitResult:
         flagged_events=(),
         mesh=None,
         mesh_fit_index=-1,
-        timings={"total_s": float(p.get("fit_s", 0.0))},
+        timings={"total_s": float(p.get("fit_s", 0.0)), **dict(p.get("timings", {}))},
         hyperparameters=dict(p.get("hyperparameters", {})),
         reliable=bool(p.get("reliable", True)),
         reasons=tuple(p.get("reasons", ())),

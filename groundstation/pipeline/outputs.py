@@ -31,7 +31,12 @@ from pathlib import Path
 import numpy as np
 
 from groundstation.contact.detector import LABEL_SURFACE
-from groundstation.mapping.mapper import FLAG_AWAITING, FLAG_FALSE_POSITIVE
+from groundstation.mapping.mapper import (
+    FLAG_AWAITING,
+    FLAG_FALSE_POSITIVE,
+    REFIT_STAGES,
+    FitResult,
+)
 from groundstation.mapping.settings import SurfaceSettings
 from groundstation.pipeline.offline import PipelineResult
 from groundstation.pipeline.scoring import MASK_CURVE, DetectedEvent, mask_curve, score
@@ -62,7 +67,24 @@ KEEP_MESHES = 200
 
 #: report.json keys that measure wall-clock time: they differ between two runs of the same log
 #: (everything else in a report is a function of the log and the settings).
-TIMING_KEYS = frozenset({"wall_s", "refit_s_median", "refit_s_p95", "refit_s_max"})
+TIMING_KEYS = frozenset({"wall_s", "refit_s_median", "refit_s_p95", "refit_s_max", "refit_time_s"})
+
+
+def refit_time(fits: Sequence[FitResult]) -> dict:
+    """Where the refits' time went (issue 13, Build point 7): per part of a refit
+    (:data:`~groundstation.mapping.mapper.REFIT_STAGES`) the seconds summed over every refit
+    that reports it, their share of the summed ``total_s`` and the part's p95 over refits."""
+    total = sum(f.timings.get("total_s", 0.0) for f in fits)
+    out = {}
+    for stage in REFIT_STAGES:
+        values = [float(f.timings[stage]) for f in fits if stage in f.timings]
+        if values:
+            out[stage.removesuffix("_s")] = {
+                "sum_s": float(sum(values)),
+                "share": float(sum(values) / total) if total > 0 else math.nan,
+                "p95_s": float(np.percentile(values, 95)),
+            }
+    return out
 
 
 def build_report(
@@ -89,6 +111,7 @@ def build_report(
         else math.nan,
         "refit_s_p95": float(np.percentile(refit_s, 95)) if refit_s else math.nan,
         "refit_s_max": max(refit_s) if refit_s else math.nan,
+        "refit_time_s": refit_time(fits),
         "refits_unreliable": sum(not f.reliable for f in fits),
         "flagged_events": list(result.final.flagged_events) if result.final else [],
         "awaiting_events": list(result.final.awaiting_events) if result.final else [],

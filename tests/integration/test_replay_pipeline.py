@@ -105,6 +105,19 @@ def test_false_contacts_are_flagged_with_stated_precision_and_recall(runs, which
     assert correct / false >= RECALL_BOUND, (correct, false)
 
 
+@pytest.mark.parametrize("which", [0, 1])
+def test_the_report_says_where_the_refits_time_went(runs, which):
+    # in process and through the fitting child and the bus alike (issue 13, Build point 7)
+    result = runs["wall_survey"][which]
+    parts = build_report(result)["refit_time_s"]
+    assert set(parts) == {"rows", "fit", "mesh", "mesh_gp", "mesh_offset", "total"}
+    total = parts["total"]["sum_s"]
+    assert total > 0 and parts["total"]["share"] == pytest.approx(1.0)
+    assert sum(parts[k]["sum_s"] for k in ("rows", "fit", "mesh")) <= total * (1 + 1e-9)
+    assert parts["mesh_gp"]["sum_s"] + parts["mesh_offset"]["sum_s"] <= parts["mesh"]["sum_s"]
+    assert all(p["sum_s"] > 0 and 0 < p["p95_s"] <= p["sum_s"] for p in parts.values())
+
+
 def test_a_touch_awaiting_a_second_one_is_flagged_and_told_apart(runs):
     """The wall survey flags a doubted touch no other touch corroborates (the lone line): its
     contact and internal points carry flag bits 0 and 1 (the viewer draws them amber), every

@@ -33,6 +33,8 @@ if TYPE_CHECKING:
 
 def fit_message(fit: FitResult) -> dict:
     """The plain data (builtins and numpy arrays) of ``fit`` that the shell publishes."""
+    from groundstation.mapping.mapper import REFIT_STAGES
+
     m = fit.mesh
     mesh: dict[str, Any] = {}
     if fit.reliable and m is not None:
@@ -48,6 +50,7 @@ def fit_message(fit: FitResult) -> dict:
         "reliable": bool(fit.reliable),
         "reasons": tuple(str(r) for r in fit.reasons),
         "fit_s": float(fit.timings.get("total_s", 0.0)),
+        "timings": {k: float(v) for k, v in fit.timings.items() if k in REFIT_STAGES},
         "hyperparameters": dict(fit.hyperparameters),
         "flagged_events": tuple(int(e) for e in fit.flagged_events),
         "ids": np.asarray(fit.ids, dtype=np.int64),

@@ -114,7 +114,8 @@ class FitMessage:
 
     ``vertices``, ``triangles`` and ``vertex_std`` are None when the fit has no mesh to publish
     (an unreliable fit keeps the last one shown; meshing off); ``vertex_std`` is zeros when the
-    mesh carries none."""
+    mesh carries none. ``timings``: where the refit's ``fit_s`` went
+    (:data:`~groundstation.mapping.mapper.REFIT_STAGES`)."""
 
     fit_index: int
     data_ns: int
@@ -130,6 +131,7 @@ class FitMessage:
     triangles: np.ndarray | None = None
     vertex_std: np.ndarray | None = None
     awaiting_events: tuple[int, ...] = ()
+    timings: dict = dataclasses.field(default_factory=dict)
 
     @classmethod
     def from_plain(cls, plain: dict) -> FitMessage:
@@ -402,6 +404,7 @@ class MapperProcess(Worker):
                 "data_ns": fit.data_ns,
                 "lag_s": float(lag_s),
                 "fit_s": fit.fit_s,
+                "timings": dict(fit.timings),
                 "hyperparameters": fit.hyperparameters,
                 "flagged_events": list(fit.flagged_events),
                 "awaiting_events": list(fit.awaiting_events),
