@@ -127,6 +127,7 @@ class StatusBoard:
         self.warnings = 0
         self.errors = 0
         self.refit_s: list[float] = []
+        self.refit_parts: dict[str, float] = {}  # mapper.fit timings summed over refits, seconds
         self._last_refit_key: tuple[Any, ...] | None = None
         self.mesh: _Mesh | None = None
         self.mesh_intervals_s: list[float] = []
@@ -195,6 +196,11 @@ class StatusBoard:
             self.flagged = len(env.payload["flagged_events"])
             self.awaiting = len(env.payload.get("awaiting_events", ()))
         self._refit(env.payload, ("fit", k))
+        timings = env.payload.get("timings")
+        if isinstance(timings, Mapping):
+            for part, s in timings.items():
+                if isinstance(s, (int, float)) and not isinstance(s, bool) and math.isfinite(s):
+                    self.refit_parts[str(part)] = self.refit_parts.get(str(part), 0.0) + s
         ids = env.arrays.get("ids")
         new = []
         if ids is not None:
@@ -346,6 +352,18 @@ class StatusBoard:
             parts.append("[" + state + (note if restarts else "") + "]")
         return "  ".join(parts)
 
+    def refit_time(self) -> dict[str, dict[str, float]]:
+        """Where the refits' time went: each part the mapper reports (``mapper.fit``
+        ``timings``), summed over the session, seconds and share of the summed total."""
+        total = self.refit_parts.get("total_s", 0.0)
+        return {
+            part.removesuffix("_s"): {
+                "sum_s": round(s, 3),
+                "share": round(s / total, 3) if total > 0 else math.nan,
+            }
+            for part, s in sorted(self.refit_parts.items())
+        }
+
     def summary(self) -> dict[str, Any]:
         """Measured numbers of the session (for the closing note and the soak test), every
         condition the status line showed (``events``: when, how long) and what data was lost
@@ -364,6 +382,7 @@ class StatusBoard:
             "observations": self.observations,
             "contact_observations": self.contact_observations,
             "refit_s": _stats(self.refit_s),
+            "refit_time_s": self.refit_time(),
             "mesh_interval_s": _stats(self.mesh_intervals_s),
             "contact_to_mesh_s": _stats(self.latencies_s),
             "meshes": self.counts.get("mesh", 0),

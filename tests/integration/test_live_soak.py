@@ -107,6 +107,7 @@ def test_live_soak_ten_minutes(tmp_path):
         "monitor_counts": summary.get("counts"),
         "recording": summary.get("recording"),
         "refit_s": summary.get("refit_s"),
+        "refit_time_s": summary.get("refit_time_s"),
         "mesh_interval_s": summary.get("mesh_interval_s"),
         "contact_to_mesh_s": summary.get("contact_to_mesh_s"),
         "contacts": summary.get("contacts"),

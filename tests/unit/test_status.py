@@ -113,6 +113,21 @@ def test_a_republished_mapper_status_is_not_a_second_refit():
     assert b.summary()["refit_s"]["n"] == 2
 
 
+def test_where_the_refits_time_went_is_summed_over_the_session_and_junk_is_ignored():
+    b = StatusBoard(0)
+    ids = {"ids": np.array([1], np.int64)}
+    fits = [{"total_s": 0.4, "fit_s": 0.1, "mesh_s": 0.3, "mesh_offset_s": 0.1},
+            {"total_s": 0.6, "fit_s": 0.3, "mesh_s": 0.3, "mesh_offset_s": float("nan")},
+            {"total_s": True, "fit_s": "0.5"}]  # fmt: skip
+    for k, timings in enumerate(fits):
+        b.ingest(env("mapper.fit", {"fit_index": k, "timings": timings}, ids), k * S)
+    b.ingest(env("mapper.fit", {"fit_index": 9, "timings": [0.1]}, ids), 9 * S)
+    parts = b.summary()["refit_time_s"]
+    assert parts["total"] == {"sum_s": 1.0, "share": 1.0}
+    assert parts["fit"] == {"sum_s": 0.4, "share": 0.4}
+    assert parts["mesh"]["share"] == 0.6 and parts["mesh_offset"]["sum_s"] == 0.1
+
+
 def test_contact_to_mesh_latency_pairs_fit_ids_with_the_mesh_of_the_same_fit():
     b = StatusBoard(0)
     b.ingest(env("observations", {"id": 10, "label": 0}), 1 * S)
