@@ -131,7 +131,11 @@ class MappingSettings:
         (P(false) < 0.5); until then ``lengthscale`` and ``signal_var`` hold (mixture). Free
         space alone fits any length scale, best the cap, and one touch cannot pin it: a kernel
         learnt on it flagged that touch for being alone. On the tuning flights, 3 against 1:
-        true touches flagged 5.9 % -> 1.4 % (flight mean), gusts flagged 99.4 % both.
+        true touches flagged 5.9 % -> 1.4 % (flight mean), gusts flagged 99.4 % both. 10 against
+        3 (2026-12-03, seeds 200-202): gusty flights over 0.1 m² of phantom 2 -> 4 of 31, mean
+        largest patch 0.032 -> 0.039 m², missing by area 1.94 -> 2.02 %: waiting for more
+        touches leaves the configured kernel in force on the flights with few of them
+        (docs/results-history.md, "few-touches").
     learn_free_reach_m : float
         The kernel step sees only the free-space rows within this distance of a shape row
         (contact, internal or tangent) of its learning tile (mixture; 0: every free-space row).
