@@ -87,6 +87,17 @@ def pipeline_workers(
     return [mapper, detector, replay]
 
 
+def plain_timings(plain) -> dict[str, float]:
+    """A ``mapper.fit`` message's ``timings``: its finite seconds by part, nothing else."""
+    if not isinstance(plain, dict):
+        return {}
+    return {
+        str(k): float(v)
+        for k, v in plain.items()
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    }
+
+
 def _fit_from(env) -> FitResult:
     p, a = env.payload, env.arrays
     return FitResult(
@@ -98,7 +109,7 @@ def _fit_from(env) -> FitResult:
         flagged_events=(),
         mesh=None,
         mesh_fit_index=-1,
-        timings={"total_s": float(p.get("fit_s", 0.0)), **dict(p.get("timings", {}))},
+        timings={"total_s": float(p.get("fit_s", 0.0)), **plain_timings(p.get("timings"))},
         hyperparameters=dict(p.get("hyperparameters", {})),
         reliable=bool(p.get("reliable", True)),
         reasons=tuple(p.get("reasons", ())),
