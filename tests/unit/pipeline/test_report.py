@@ -5,7 +5,13 @@ from __future__ import annotations
 import math
 
 from groundstation.bus.envelope import Envelope, Header
-from groundstation.pipeline.report import EventRow, p_false_cell, rejected_text, truth_rows
+from groundstation.pipeline.report import (
+    EventRow,
+    p_false_cell,
+    refit_time_text,
+    rejected_text,
+    truth_rows,
+)
 
 
 def test_the_summary_shows_what_accuracy_costs_and_where_the_map_invents_surface():
@@ -76,3 +82,16 @@ def test_the_summary_counts_the_candidates_rejected_at_the_floor():
               _event("rejected"), _event("begin", at_floor=False)]  # fmt: skip
     assert rejected_text(events) == "3 (1 begun with the body at the floor)"
     assert rejected_text(events[1:]) == "2"
+
+
+def test_the_summary_says_where_the_refits_time_went():
+    parts = {
+        "total": {"sum_s": 160.8, "share": 1.0},
+        "rows": {"sum_s": 46.0, "share": 0.286},
+        "fit": {"sum_s": 46.3, "share": 0.288},
+        "mesh": {"sum_s": 65.7, "share": 0.408},
+        "mesh_gp": {"sum_s": 9.5, "share": 0.059},
+        "mesh_offset": {"sum_s": 14.5, "share": math.nan},
+    }
+    assert refit_time_text(parts) == "160.8 s: rows 29 %, fits 29 %, mesh 41 % (GP means 6 %)"
+    assert refit_time_text({}) == "" and refit_time_text({"total": {"sum_s": 0.0}}) == ""
