@@ -98,7 +98,6 @@
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import math
 from collections.abc import Sequence
 
@@ -431,13 +430,10 @@ def build_training_set(
         none = np.zeros(0, dtype=np.int64)
         rho = p.plane_reach_m
         todo = []  # (group, its two tangents, whether it carries plane points)
-        for g in range(G):
-            n = nrm[g]  # zero without contacts or where their normals disagree
-            if not n.any():
-                continue
-            a = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
-            a /= np.linalg.norm(a)
-            b = np.cross(n, a)
+        tan_a, tan_b = _tangents(nrm)
+        for g in np.flatnonzero(np.any(nrm != 0.0, axis=1)).tolist():
+            # (nrm is zero without contacts or where their normals disagree)
+            a, b = tan_a[g], tan_b[g]
             if is_settled[g]:  # settled: one event's tangents per voxel (rows bounded by area)
                 key = tuple(np.floor(cen[g] / p.settled_voxel_m).astype(np.int64).tolist())
                 if key in tangent_cells:
@@ -777,17 +773,15 @@ def _swept(
     out = np.zeros(G, dtype=bool)
     if G == 0 or free_pts.shape[0] == 0 or free_pts.shape[1] != 3:
         return out
-    from scipy.spatial import cKDTree
-
     if p.body_radius_m <= 0 or p.body_half_height_m <= 0:
         return out
     sizes = [len(cs) for cs in contacts]
     if not sum(sizes):
         return out
-    tree = cKDTree(free_pts)
+    free = _Sweep.of(free_pts, free_t, p)
     pts = np.concatenate([cs for cs in contacts if len(cs)])
     owner = np.repeat(np.arange(G), sizes)
-    _inside_body(tree, free_t, pts, normals[owner], owner, t_span, p, out)
+    _inside_body(free, pts, normals[owner], owner, t_span, p, out)
     rim_of = np.flatnonzero((np.asarray(sizes) > 0) & ~out & np.any(normals != 0.0, axis=1))
     if p.sweep_disc_m > 0 and rim_of.size:  # only the groups the points left standing
         rims = _rims(centres[rim_of], normals[rim_of], p.sweep_disc_m).reshape(-1, 3)
@@ -795,7 +789,7 @@ def _swept(
         keep = ~_past_edge(
             rims, owner, centres, normals, guard, PLANE_GUARD_REACHES * p.sweep_disc_m
         )
-        _inside_body(tree, free_t, rims[keep], normals[owner[keep]], owner[keep], t_span, p, out)
+        _inside_body(free, rims[keep], normals[owner[keep]], owner[keep], t_span, p, out)
     return out
 
 
@@ -818,10 +812,8 @@ def _past_edge(
         return out
     from scipy.spatial import cKDTree
 
-    near = cKDTree(centres[by]).query_ball_point(pts, radius)
-    count = np.fromiter(map(len, near), np.int64, len(near))
-    i = np.repeat(np.arange(len(near)), count)  # (probe, guard) pairs in reach
-    j = by[np.fromiter(itertools.chain.from_iterable(near), np.int64, int(count.sum()))]
+    i, j = _pairs_within(cKDTree(pts), cKDTree(centres[by]), radius)  # (probe, guard) pairs
+    j = by[j]
     g = owner[i]
     beyond = np.einsum("ij,ij->i", pts[i] - centres[j], normals[j]) > PLANE_BEYOND_TOL_M
     # a gust in the free space in front of a touched wall is not behind that wall
@@ -840,48 +832,109 @@ def one_solid(a: np.ndarray, na: np.ndarray, b: np.ndarray, nb: np.ndarray) -> n
 
 
 def _inside_body(
-    tree, free_t, pts, normals, owner, t_span, p: TrainingPolicy, out: np.ndarray
+    free: _Sweep, pts, normals, owner, t_span, p: TrainingPolicy, out: np.ndarray
 ) -> None:
     """Set ``out[owner[k]]`` where probe ``pts[k]`` lies inside the body at a free-space sample
-    of ``tree`` taken ``sweep_exclude_s`` or more away from its group's time span, wherever
+    of ``free`` taken ``sweep_exclude_s`` or more away from its group's time span, wherever
     it really was: within ``sweep_tolerance_m`` along its unit normal ``normals[k]`` (both ends
     of that segment inside the body) with ``tolerance_along_normal``, else (or without a
-    normal: zero) anywhere within the tolerance (the body shrunk by it all round)."""
-    R, H, tol = p.body_radius_m, p.body_half_height_m, p.sweep_tolerance_m
-    near = tree.query_ball_point(pts, math.hypot(R, H))
-    count = np.fromiter(map(len, near), np.int64, len(near))
-    if not count.sum():
-        return
-    i = np.repeat(np.arange(len(near)), count)  # (probe, free sample) pairs in reach
-    j = np.fromiter(itertools.chain.from_iterable(near), np.int64, int(count.sum()))
-    excl = int(p.sweep_exclude_s * 1e9)
-    lo = np.array([s[0] for s in t_span], dtype=np.int64)[owner[i]] - excl
-    hi = np.array([s[1] for s in t_span], dtype=np.int64)[owner[i]] + excl
-    dx = tree.data[j] - pts[i]
-    n = normals[i]
-    has_n = np.any(n != 0.0, axis=1) & p.tolerance_along_normal
-    inside = has_n.copy()
-    for sign in (-1.0, 1.0):  # both ends of the probe's tolerance segment
-        e = dx + sign * tol * n
-        inside &= (np.hypot(e[:, 0], e[:, 1]) < R) & (np.abs(e[:, 2]) < H)
-    inside |= (
-        ~has_n & (np.hypot(dx[:, 0], dx[:, 1]) < R - tol) & (np.abs(dx[:, 2]) < H - tol)
-    )  # fmt: skip
-    away = (free_t[j] < lo) | (free_t[j] > hi)  # a sample away from the event
-    out[owner[i[inside & away]]] = True
+    normal: zero) anywhere within the tolerance (the body shrunk by it all round).
 
+    A probe inside the body (either way) lies in the box of half-widths (R, R, H) round the
+    sample, so the candidate pairs come from a box query on z scaled by R / H (a sphere round
+    the cylinder holds twice as many); the test then runs on coordinate columns. A pass over
+    ``free.coarse`` (every ``SWEEP_COARSE``-th sample) comes first: a group needs one sample
+    inside, and one where the vehicle lingered has hundreds, so the full pass is left with
+    the probes of the groups the coarse one did not settle."""
+    for sub in (free.coarse, free):
+        todo = ~out[owner]
+        if sub is not None and todo.any():
+            _inside_body_pass(sub, pts[todo], normals[todo], owner[todo], t_span, p, out)
+
+
+def _inside_body_pass(
+    free: _Sweep, pts, normals, owner, t_span, p: TrainingPolicy, out: np.ndarray
+) -> None:
+    """One pass of :func:`_inside_body` over the samples of ``free``."""
+    if not len(pts):
+        return
+    R, H, tol = p.body_radius_m, p.body_half_height_m, p.sweep_tolerance_m
+    from scipy.spatial import cKDTree
+
+    probes = cKDTree(pts * free.scale)
+    i, j = _pairs_within(probes, free.tree, R * (1.0 + 1e-9), np.inf)  # the box, rounding kept in
+    if not i.size:
+        return
+    excl = int(p.sweep_exclude_s * 1e9)
+    lo = np.array([s[0] for s in t_span], dtype=np.int64)[owner] - excl
+    hi = np.array([s[1] for s in t_span], dtype=np.int64)[owner] + excl
+    tj = free.t[j]
+    away = (tj < lo[i]) | (tj > hi[i])  # a sample away from the event
+    i, j = i[away], j[away]
+    has_n = np.any(normals != 0.0, axis=1) & p.tolerance_along_normal  # per probe
+    fx, fy, fz = free.X[:, 0][j], free.X[:, 1][j], free.X[:, 2][j]
+    inside = has_n[i]
+    for sign in (-1.0, 1.0):  # both ends of the probe's tolerance segment
+        q = pts - sign * tol * normals  # (sample - end) = (sample - probe) + sign * tol * n
+        ex, ey, ez = fx - q[:, 0][i], fy - q[:, 1][i], fz - q[:, 2][i]
+        inside &= (np.hypot(ex, ey) < R) & (np.abs(ez) < H)
+    ex, ey, ez = fx - pts[:, 0][i], fy - pts[:, 1][i], fz - pts[:, 2][i]
+    inside |= ~has_n[i] & (np.hypot(ex, ey) < R - tol) & (np.abs(ez) < H - tol)
+    out[owner[i[inside]]] = True
+
+
+@dataclasses.dataclass(frozen=True)
+class _Sweep:
+    """The free-space samples the body's swept volume is tested at: positions ``X`` (n, 3),
+    times ``t`` (n,) and a ``tree`` of the positions with z scaled by ``scale[2]`` = R / H
+    (``_inside_body``'s box query)."""
+
+    X: np.ndarray
+    t: np.ndarray
+    tree: object
+    scale: np.ndarray
+    coarse: _Sweep | None = None  # every SWEEP_COARSE-th sample
+
+    @classmethod
+    def of(cls, X: np.ndarray, t: np.ndarray, p: TrainingPolicy, stride: int = 1) -> _Sweep:
+        from scipy.spatial import cKDTree
+
+        scale = np.array([1.0, 1.0, p.body_radius_m / p.body_half_height_m])
+        coarse = None
+        if stride == 1 and len(X) > SWEEP_COARSE:
+            coarse = cls.of(X[::SWEEP_COARSE], t[::SWEEP_COARSE], p, SWEEP_COARSE)
+        return cls(X=X, t=t, tree=cKDTree(X * scale), scale=scale, coarse=coarse)
+
+
+def _pairs_within(a, b, radius: float, norm: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """Every (index in ``a``, index in ``b``) pair of points of the two ``cKDTree`` within
+    ``radius`` of each other in the Minkowski ``norm`` (in no particular order), as two int64
+    arrays: built in C (``sparse_distance_matrix``), not from per-point Python lists."""
+    pairs = a.sparse_distance_matrix(b, radius, p=norm, output_type="ndarray")
+    return pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+
+
+#: ``_inside_body`` tests every this many free-space samples first (the full set after).
+SWEEP_COARSE = 8
 
 #: Points on the rim of a contact's tangent disc (``_rims``).
 DISC_POINTS = 12
 
 
+def _tangents(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit tangents (k, 3) across each unit normal (k, 3): ``a`` = n x z (n x x for a
+    normal within ~25 deg of vertical), ``b`` = n x a (zero rows give NaN)."""
+    ref = np.where((np.abs(normals[:, 2]) < 0.9)[:, None], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
+    a = np.cross(normals, ref)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a /= np.linalg.norm(a, axis=1, keepdims=True)
+    return a, np.cross(normals, a)
+
+
 def _rims(centres: np.ndarray, normals: np.ndarray, radius: float) -> np.ndarray:
     """(k, DISC_POINTS, 3): the rim of the disc of ``radius`` round each centre (k, 3), in
     the plane across its unit normal (k, 3)."""
-    ref = np.where((np.abs(normals[:, 2]) < 0.9)[:, None], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
-    a = np.cross(normals, ref)
-    a /= np.linalg.norm(a, axis=1, keepdims=True)
-    b = np.cross(normals, a)
+    a, b = _tangents(normals)
     ang = np.linspace(0.0, 2.0 * np.pi, DISC_POINTS, endpoint=False)
     c, s = np.cos(ang)[None, :, None], np.sin(ang)[None, :, None]
     return centres[:, None, :] + radius * (c * a[:, None, :] + s * b[:, None, :])
