@@ -268,13 +268,17 @@ class FrozenPosterior:
 class BlockFactor:
     """What an EM iteration of the event mixture needs of ``B = I + W^1/2 K W^1/2``, and no
     more: the posterior mean's weights and the blocks of ``P = (K + W^-1)^-1`` of the rows it
-    leaves out (``P_bb = Z_b^T Z_b`` with ``Z = L^-1 W^1/2 E_b``: one triangular solve over
-    those rows' columns, O(n^2 k), instead of ``potri``'s O(n^3) full inverse).
+    leaves out (``P_bb = Z_b^T Z_b`` with ``Z = L^-1 W^1/2 E_b``).
+
+    ``B`` is factorised with the rows asked for last (``order``). Forward substitution then
+    leaves ``Z`` zero above the trailing block, where it is that block's triangular inverse
+    scaled by ``W^1/2``: O(k^3 / 3) for k rows asked, instead of a solve over their columns,
+    O(n^2 k) (on a hover spot's tile, 540 of 770 rows belong to gusts: 6x fewer flops).
 
     Attributes
     ----------
     L : (n, n) float64
-        Lower Cholesky factor of ``B``.
+        Lower Cholesky factor of ``B`` with its rows and columns in ``order``.
     sw : (n,) float64
         ``W^1/2``.
     a : (n,) float64
@@ -282,8 +286,11 @@ class BlockFactor:
     m : (n,) float64
         Posterior mean ``mu0 + K a``.
     logdet_B, r_a : float
-    Z : (n, k) float64
-        ``L^-1 W^1/2`` at the columns of the rows asked for, in the order asked.
+    Z : (k, k) float64
+        ``L^-1 W^1/2`` at the columns of the rows asked for, in the order asked, without its
+        leading ``n - k`` rows (zero).
+    order : (n,) int64 or None
+        The row order of ``L`` (None: the rows' own).
     """
 
     L: np.ndarray
@@ -293,6 +300,12 @@ class BlockFactor:
     logdet_B: float
     r_a: float
     Z: np.ndarray
+    order: np.ndarray | None = None
+
+    def in_factor_order(self, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Per-row ``arrays`` in the row order of ``L`` (a posterior built on ``L`` needs its
+        rows, weights and ``W^1/2`` in that order)."""
+        return tuple(a if self.order is None else a[self.order] for a in arrays)
 
     def P_block(self, cols: slice) -> np.ndarray:
         """``P`` restricted to the asked-for rows ``cols`` (a slice of their order)."""
@@ -318,13 +331,31 @@ def factorize_blocks(
     """
     n = K.shape[0]
     sw = np.sqrt(w)
-    L = _cholesky_B(K, sw)
-    z, _ = lapack.dpotrs(L, sw * r, lower=1)
-    a = sw * z
     rows = np.asarray(rows, dtype=np.int64)
-    E = np.zeros((n, rows.size), order="F")
-    E[rows, np.arange(rows.size)] = sw[rows]
-    Z = solve_triangular(L, E, lower=True, check_finite=False, overwrite_b=True)
+    k = rows.size
+    order = None
+    if k:  # the rows asked for last (in the order asked), the others before them
+        last = np.zeros(n, dtype=bool)
+        last[rows] = True
+        order = np.concatenate([np.flatnonzero(~last), rows])
+        if np.array_equal(order, np.arange(n)):
+            order = None
+    if order is None:
+        L = _cholesky_B(K, sw)
+        z, _ = lapack.dpotrs(L, sw * r, lower=1)
+        a = sw * z
+    else:
+        swo = sw[order]
+        L = _cholesky_B(K[np.ix_(order, order)], swo)
+        z, _ = lapack.dpotrs(L, swo * r[order], lower=1)
+        a = np.empty(n)
+        a[order] = swo * z
+    Z = np.zeros((0, 0))
+    if k:
+        Linv, info = lapack.dtrtri(L[n - k :, n - k :], lower=1)
+        if info != 0:
+            raise FactorizationError(f"inverse of B's trailing Cholesky block failed (info={info})")
+        Z = Linv * sw[rows][None, :]
     return BlockFactor(
         L=L,
         sw=sw,
@@ -333,4 +364,5 @@ def factorize_blocks(
         logdet_B=2.0 * float(np.sum(np.log(np.diag(L)))),
         r_a=float(r @ a),
         Z=Z,
+        order=order,
     )

@@ -478,9 +478,8 @@ class EventMixtureGPIS:
         self.llr_ = llr
         self.weights_ = w
         self.lengthscale_, self.signal_var_ = ell, sf2
-        self.posterior_ = MixedPosterior(
-            X, V, center, fac.a, fac.L, fac.sw, self.prior_mean, ell, sf2
-        )
+        Xo, Vo, ao, swo = fac.in_factor_order(X, V, fac.a, fac.sw)
+        self.posterior_ = MixedPosterior(Xo, Vo, center, ao, fac.L, swo, self.prior_mean, ell, sf2)
         self.mean_train_ = fac.m
         at = self.bounds.at_bound(ell, sf2)
         self.fit_ = MixtureFit(

@@ -220,8 +220,14 @@ def test_block_factor_matches_the_dense_inverse() -> None:
     np.testing.assert_allclose(blk.P_block(slice(0, 2)), P[np.ix_([7, 3], [7, 3])], rtol=1e-9)
     np.testing.assert_allclose(blk.P_block(slice(2, 5)), P[np.ix_(rows[2:], rows[2:])], rtol=1e-9)
     np.testing.assert_allclose(blk.a, P @ (y - mu0), rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(blk.m, full.m, rtol=1e-12)
+    np.testing.assert_allclose(blk.m, full.m, rtol=1e-12, atol=1e-14)  # rows reordered
     assert blk.log_marginal(w) == pytest.approx(full.log_marginal(w), rel=1e-12)
+    # its Cholesky factor has the rows asked for last: B in that order
+    o = blk.order
+    np.testing.assert_array_equal(o[-rows.size :], rows)
+    sw = np.sqrt(w)[o]
+    B = np.eye(len(y)) + sw[:, None] * K[np.ix_(o, o)] * sw[None, :]
+    np.testing.assert_allclose(blk.L @ blk.L.T, B, rtol=1e-12, atol=1e-12)
 
 
 def test_each_coordinate_step_raises_the_dense_bound() -> None:
