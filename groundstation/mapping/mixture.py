@@ -269,9 +269,23 @@ class MixedPosterior:
         return mean, std
 
 
-def _log_normal(e: float, var: float) -> float:
-    """log N(e; 0, var)."""
-    return -0.5 * (e * e / var + math.log(var) + LOG_2PI)
+def _log_normal_v(e: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """log N(e; 0, var), elementwise."""
+    return -0.5 * (e * e / var + np.log(var) + LOG_2PI)
+
+
+def _inverses(P: np.ndarray) -> np.ndarray:
+    """(b, s, s) inverses of a stack of blocks (the pseudo-inverse of a singular one)."""
+    try:
+        return np.linalg.inv(P)
+    except np.linalg.LinAlgError:
+        out = np.empty_like(P)
+        for i, Pi in enumerate(P):
+            try:
+                out[i] = np.linalg.inv(Pi)
+            except np.linalg.LinAlgError:
+                out[i] = np.linalg.pinv(Pi)
+        return out
 
 
 def _checked(X, y, noise_var, groups: Groups, start, directions) -> tuple:
@@ -557,27 +571,36 @@ class EventMixtureGPIS:
         ``N(e_g; 0, v_g + s_out^2)`` if false.
         """
         llr = np.zeros(n_groups)
-        a = fac.a
-        for rows, span in zip(bursts, spans, strict=True):
-            Pbb = fac.P_block(span)
-            try:
-                Cb = np.linalg.inv(Pbb)
-            except np.linalg.LinAlgError:
-                Cb = np.linalg.pinv(Pbb)
-            e = Cb @ a[rows]  # y_B - E[y_B | rest]
-            V = Cb - np.diag(1.0 / w[rows])  # latent predictive covariance of f_B | rest
-            g_rows = rg[rows]  # companions are -1: left out with the burst, not its evidence
-            val = is_val[rows]
-            for g in np.unique(g_rows[g_rows >= 0]):
-                k = np.flatnonzero((g_rows == g) & val)  # slopes are not label residuals
-                if k.size == 0:
-                    continue
-                eg = float(e[k].mean())
-                vg = max(float(V[np.ix_(k, k)].mean()), 0.0)
-                sg = float(s2[rows[k]].mean())
-                llr[g] = _log_normal(eg, vg + self.outlier_var) - _log_normal(eg, vg + sg)
-                if eg > 0 and not self.flag_inside:
-                    llr[g] = min(llr[g], 0.0)  # placed inside by the rest: not a gust's point
+        sizes = np.array([b.size for b in bursts], dtype=np.int64)
+        for size in np.unique(sizes).tolist():  # bursts of one size at a time, batched
+            which = np.flatnonzero(sizes == size)
+            rows = np.stack([bursts[b] for b in which])  # (nb, s)
+            cols = np.stack([np.arange(spans[b].start, spans[b].stop) for b in which])
+            Zc = fac.Z[:, cols]  # (k, nb, s)
+            C = _inverses(np.einsum("kbi,kbj->bij", Zc, Zc))  # P_BB^-1
+            e = np.einsum("bij,bj->bi", C, fac.a[rows])  # y_B - E[y_B | rest]
+            V = C  # latent predictive covariance of f_B | rest: C - W_B^-1
+            diag = np.arange(size)
+            V[:, diag, diag] -= 1.0 / w[rows]
+            # (burst, group) units over the groups' value rows: companions (-1) are left out
+            # with the burst but are not its evidence, and slopes are not label residuals
+            g_rows = rg[rows]
+            sel = (g_rows >= 0) & is_val[rows]
+            if not sel.any():
+                continue
+            unit = np.full(rows.shape, -1, dtype=np.int64)
+            groups_here, unit[sel] = np.unique(g_rows[sel], return_inverse=True)
+            U = groups_here.size
+            n = np.bincount(unit[sel], minlength=U).astype(np.float64)
+            eg = np.bincount(unit[sel], weights=e[sel], minlength=U) / n
+            sg = np.bincount(unit[sel], weights=s2[rows][sel], minlength=U) / n
+            same = (unit[:, :, None] == unit[:, None, :]) & (unit[:, :, None] >= 0)
+            by = np.broadcast_to(unit[:, :, None], same.shape)[same]
+            vg = np.maximum(np.bincount(by, weights=V[same], minlength=U) / (n * n), 0.0)
+            out = _log_normal_v(eg, vg + self.outlier_var) - _log_normal_v(eg, vg + sg)
+            if not self.flag_inside:  # placed inside by the rest: not a gust's point
+                out = np.where(eg > 0, np.minimum(out, 0.0), out)
+            llr[groups_here] = out
         return llr
 
     def _kernel_step(self, Xv, center, w, resid, ell, sf2) -> tuple[float, float]:
