@@ -110,6 +110,9 @@ class OpenSpaceOffset:
             n = np.asarray(face_normals, dtype=np.float64)
             n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
             self._faces = (cKDTree(np.asarray(faces, dtype=np.float64)), n)
+            j = len(n)  # the one_solid rows worked out so far (_solid_rows)
+            self._solid = np.zeros((j, j), dtype=bool)
+            self._solid_done = np.zeros(j, dtype=bool)
         self._free = None
         if self._faces is not None and free is not None and len(free):
             self._free = cKDTree(np.asarray(free, dtype=np.float64))
@@ -164,11 +167,8 @@ class OpenSpaceOffset:
         front = np.where(found, front_k, -np.inf).max(axis=1)
         inside = _step((depth - self.inside_m) / self.inside_m)
         if self.solid and k > 1:  # ... unless it is in front of another face of that solid
-            # a pair's test depends on the two touches only: each nearest touch's row against
-            # every touch, once, instead of once per point (neighbouring points share them)
             first, row = np.unique(jj[:, 0], return_inverse=True)
-            a, b = np.repeat(first, tree.n), np.tile(np.arange(tree.n), first.size)
-            table = one_solid(tree.data[a], n[a], tree.data[b], n[b]).reshape(first.size, -1)
+            table = self._solid_rows(first)
             one = table[row.reshape(-1, 1), jj] & found & found[:, :1]
             one[:, 0] = False
             past = np.where(one, _step(np.where(found, front_k, 0.0) / self.front_m), 0.0)
@@ -177,6 +177,22 @@ class OpenSpaceOffset:
             d_free, _ = self._free.query(X, distance_upper_bound=self.reach_m)
             inside *= _step((np.minimum(d_free, self.reach_m) - d[:, 0]) / self.inside_m)
         return np.where(found[:, 0], _step(front / self.front_m) * (1.0 - inside), 1.0)
+
+    def _solid_rows(self, first: np.ndarray) -> np.ndarray:
+        """(len(first), j) bool: ``one_solid`` of each touch ``first[i]`` against every touch.
+        A pair's test depends on the two touches only, so each nearest touch's row is worked
+        out once per offset (a mesh evaluates the offset in hundreds of calls, each with a few
+        dozen nearest touches), not once per call or point."""
+        tree, n = self._faces
+        todo = np.flatnonzero(~self._solid_done[first])
+        if todo.size:
+            new = first[todo]
+            a, b = np.repeat(new, tree.n), np.tile(np.arange(tree.n), new.size)
+            self._solid[new] = one_solid(tree.data[a], n[a], tree.data[b], n[b]).reshape(
+                new.size, -1
+            )
+            self._solid_done[new] = True
+        return self._solid[first]
 
     def digest_near(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """(k,) float64: the anchors and touches that shape the offset inside the box

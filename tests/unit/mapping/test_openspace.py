@@ -158,6 +158,12 @@ def test_the_offset_is_the_per_point_front_test_of_every_touch_within_reach():
                             inside_m=0.1, free=free, solid=solid)  # fmt: skip
         wants.append(_open_per_point(b, X))
         np.testing.assert_allclose(b._open(X), wants[-1], rtol=0.0, atol=1e-12)
+        # asked in pieces (as a mesh asks, tile by tile), the pair rows worked out for one
+        # piece serve the next: the same answer in any order
+        b = OpenSpaceOffset(0.7, 0.1, 0.3, faces, faces, normals, reach_m=0.8, front_m=0.1,
+                            inside_m=0.1, free=free, solid=solid)  # fmt: skip
+        for piece in np.array_split(rng.permutation(len(X)), 7):
+            np.testing.assert_allclose(b._open(X[piece]), wants[-1][piece], rtol=0.0, atol=1e-12)
         assert 0.1 < np.mean(wants[-1] == 1.0) < 0.9
         assert np.any((wants[-1] > 0.0) & (wants[-1] < 1.0))
     assert np.sum(wants[1] > wants[0] + 0.01) > 200  # past an edge of one solid: open
