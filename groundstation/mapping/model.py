@@ -283,8 +283,10 @@ class SurfaceModel:
             decide_p=self.decide_p,
         )
 
-    def _subset(self, ts: TrainingSet, rows: np.ndarray, start: np.ndarray):
-        """The rows ``rows`` with their groups re-indexed: (X, y, s2, dirs, Groups, start, gidx)."""
+    @staticmethod
+    def _local_groups(ts: TrainingSet, rows: np.ndarray):
+        """The groups of the rows ``rows`` re-indexed: (each row's local group, the local groups'
+        global indices, each row's local companion or None)."""
         rg = ts.groups.row_group[rows]
         gidx = np.unique(rg[rg >= 0])
         local = np.full(ts.groups.prior_false.size, -1, dtype=np.int64)
@@ -293,8 +295,13 @@ class SurfaceModel:
         if comp is not None:
             comp = comp[rows]
             comp = np.where(comp >= 0, local[np.maximum(comp, 0)], -1)  # -1: group not here
+        return np.where(rg >= 0, local[np.maximum(rg, 0)], -1), gidx, comp
+
+    def _subset(self, ts: TrainingSet, rows: np.ndarray, start: np.ndarray):
+        """The rows ``rows`` with their groups re-indexed: (X, y, s2, dirs, Groups, start, gidx)."""
+        rg, gidx, comp = self._local_groups(ts, rows)
         groups = Groups(
-            row_group=np.where(rg >= 0, local[np.maximum(rg, 0)], -1),
+            row_group=rg,
             prior_false=ts.groups.prior_false[gidx],
             burst=ts.groups.burst[gidx],
             extra_llr=ts.groups.extra_llr[gidx],
@@ -355,18 +362,19 @@ class SurfaceModel:
         tile_keys = {tuple(int(v) for v in k) for k in near}
         decided = start > ts.groups.lines(self.decide_p)
         fitted: dict[tuple, _TileFit] = {}
-        for key in sorted(tile_keys):
-            rows = layout.members(ts.X, key)
+        keys = sorted(tile_keys)
+        for key, rows in layout.members_of(ts.X, keys).items():
             if rows.size < 2 or not shape[rows].any():
                 continue  # no surface can be drawn in this core from its rows
-            X, y, s2, V, groups, st, gidx = self._subset(ts, rows, start)
-            sig = signature(X, y, s2, V, groups.row_group, np.round(groups.prior_false, 4),
-                            groups.burst, groups.extra_llr, decided[gidx],
-                            _or_none(groups.companion))  # fmt: skip
+            rg, gidx, comp = self._local_groups(ts, rows)
+            sig = signature(ts.X[rows], ts.y[rows], ts.noise_var[rows], ts.directions[rows], rg,
+                            np.round(ts.groups.prior_false[gidx], 4), ts.groups.burst[gidx],
+                            ts.groups.extra_llr[gidx], decided[gidx], _or_none(comp))  # fmt: skip
             old = self._tiles.get(key)
             if old is not None and old.signature == sig:  # same data; rows renumbered since
                 fitted[key] = dataclasses.replace(old, rows=rows, gidx=gidx)
                 continue
+            X, y, s2, V, groups, st, gidx = self._subset(ts, rows, start)
             est = self._estimator(False, warm).fit(X, y, s2, groups, start=st, directions=V)
             fitted[key] = _TileFit(key, rows, gidx, sig, est, None)
         self._tiles = fitted

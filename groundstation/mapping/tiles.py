@@ -64,6 +64,24 @@ class TileLayout:
         inside = np.all((X >= lo - h) & (X < hi + h), axis=1)
         return np.flatnonzero(inside)
 
+    def members_of(self, X: np.ndarray, keys) -> dict[tuple, np.ndarray]:
+        """:meth:`members` of every tile in ``keys`` (default halo), sharing the per-axis
+        tests: tiles in one row of the lattice test each coordinate once between them."""
+        h = self.halo_m
+        inside: dict[tuple[int, int], np.ndarray] = {}  # (axis, index) -> rows within it
+        out = {}
+        for key in keys:
+            masks = []
+            for axis, k in enumerate(key):
+                m = inside.get((axis, k))
+                if m is None:  # as members(): core (k * edge, (k + 1) * edge) grown by h
+                    x = X[:, axis]
+                    lo, hi = float(k) * self.edge_m, (float(k) + 1.0) * self.edge_m
+                    m = inside[(axis, k)] = (x >= lo - h) & (x < hi + h)
+                masks.append(m)
+            out[key] = np.flatnonzero(np.logical_and.reduce(masks))
+        return out
+
 
 def signature(*arrays: np.ndarray) -> str:
     """A digest of a tile's inputs: equal digests, equal fits."""

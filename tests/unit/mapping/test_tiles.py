@@ -27,3 +27,22 @@ def test_keys_near_are_the_tiles_whose_core_meets_a_points_reach_box(edge, reach
 
 def test_keys_near_without_points_is_empty():
     assert TileLayout(1.0, 0.3).keys_near(np.zeros((0, 3)), 0.25).shape == (0, 3)
+
+
+@pytest.mark.parametrize(("edge", "halo"), [(1.0, 0.69), (0.75, 0.9), (2.0, 0.0)])
+def test_members_of_many_tiles_are_each_tiles_members(edge, halo):
+    # points on the lattice planes and their halo bounds too (where < and >= decide)
+    rng = np.random.default_rng(3)
+    layout = TileLayout(edge, halo)
+    grid = np.arange(-3, 4) * edge
+    X = np.vstack([
+        rng.uniform(-3.0, 3.0, (500, 3)),
+        rng.choice(np.concatenate([grid, grid - halo, grid + halo]), (200, 3)),
+    ])  # fmt: skip
+    keys = [tuple(int(v) for v in k) for k in layout.keys_near(X, halo)]
+    got = layout.members_of(X, keys)
+    assert list(got) == keys
+    for key in keys:
+        np.testing.assert_array_equal(got[key], layout.members(X, key))
+    n_in = sum(len(v) for v in got.values())
+    assert n_in > len(X) if halo > 0 else n_in == len(X)  # halos overlap; cores partition
