@@ -612,13 +612,18 @@ def _corroborators(
     from scipy.spatial import cKDTree
 
     owner = np.repeat(np.arange(len(contacts)), sizes)
-    has = [g for g in np.flatnonzero(sizes) if np.isfinite(centres[g]).all()]
-    if not has:
+    has = np.flatnonzero((np.asarray(sizes) > 0) & np.all(np.isfinite(centres), axis=1))
+    if not has.size:
         return tuple(out)
-    nears = cKDTree(np.concatenate(contacts)).query_ball_point(centres[has], radius)
-    for g, near in zip(has, nears, strict=True):
-        who = np.unique(owner[np.asarray(near, dtype=np.int64)])
-        out[g] = who[who != g]
+    i, j = _pairs_within(cKDTree(centres[has]), cKDTree(np.concatenate(contacts)), radius)
+    G = len(contacts)
+    g, who = has[i], owner[j]
+    pair = np.unique((g * G + who)[who != g])  # by group, then the other group
+    first, other = pair // G, pair % G
+    cuts = np.searchsorted(first, has)
+    ends = np.searchsorted(first, has, side="right")
+    for k, gk in enumerate(has.tolist()):
+        out[gk] = other[cuts[k] : ends[k]]
     return tuple(out)
 
 
