@@ -307,10 +307,15 @@ class BlockFactor:
         rows, weights and ``W^1/2`` in that order)."""
         return tuple(a if self.order is None else a[self.order] for a in arrays)
 
+    def P_blocks(self, cols: np.ndarray) -> np.ndarray:
+        """(b, s, s): ``P`` restricted to each row of ``cols`` ((b, s) positions in the order
+        the rows were asked for), all blocks in one product."""
+        Zc = self.Z[:, cols]  # (k, b, s)
+        return np.einsum("kbi,kbj->bij", Zc, Zc)
+
     def P_block(self, cols: slice) -> np.ndarray:
         """``P`` restricted to the asked-for rows ``cols`` (a slice of their order)."""
-        Zb = self.Z[:, cols]
-        return Zb.T @ Zb
+        return self.P_blocks(np.arange(cols.start, cols.stop)[None, :])[0]
 
     def log_marginal(self, w: np.ndarray) -> float:
         """``log N(y | mu0, K + W^-1)`` (ALGORITHM.md L1)."""

@@ -576,8 +576,7 @@ class EventMixtureGPIS:
             which = np.flatnonzero(sizes == size)
             rows = np.stack([bursts[b] for b in which])  # (nb, s)
             cols = np.stack([np.arange(spans[b].start, spans[b].stop) for b in which])
-            Zc = fac.Z[:, cols]  # (k, nb, s)
-            C = _inverses(np.einsum("kbi,kbj->bij", Zc, Zc))  # P_BB^-1
+            C = _inverses(fac.P_blocks(cols))  # P_BB^-1
             e = np.einsum("bij,bj->bi", C, fac.a[rows])  # y_B - E[y_B | rest]
             V = C  # latent predictive covariance of f_B | rest: C - W_B^-1
             diag = np.arange(size)
