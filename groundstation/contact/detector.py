@@ -126,6 +126,7 @@ class DetectorStats:
     rejected: int = 0  # non-finite input
     no_pose: int = 0  # observations that could not be placed
     left_contact: int = 0  # later samples of a push dropped: the vehicle had flown off
+    tilted: int = 0  # free-space samples not taken: the body was tilted past the limit
     contacts: int = 0  # contact events started
     observations: int = 0
 

@@ -164,6 +164,17 @@ class _Closed:
     need_ns: int  # data time needed for the evidence
 
 
+def tilt_cos(q: np.ndarray) -> float:
+    """Cosine of the angle between the body's thrust axis and the vertical, for an attitude
+    quaternion (w, x, y, z) body FRD -> NED (any norm): 1 level, 0 on its side, -1 upside
+    down; NaN for a zero or non-finite quaternion."""
+    w, x, y, z = (float(v) for v in q)
+    n2 = w * w + x * x + y * y + z * z
+    if not (n2 > 0.0 and math.isfinite(n2)):
+        return math.nan
+    return (w * w + z * z - x * x - y * y) / n2
+
+
 def burst_raised(p: float, odds: float) -> float:
     """``p`` with its odds multiplied by ``odds`` (``contact.burst_odds``): a candidate in a
     burst after a clearly false one."""
@@ -230,6 +241,7 @@ class ImpulseDetector:
         self._last_external_pos: list[float] | None = None
         self._quiet_ns = int(s.quiet_s * 1e9)
         self._external_ns = int(1e9 / s.external_rate_hz)
+        self._level_cos = math.cos(math.radians(s.external_max_tilt_deg))
         self._seg_start: int | None = None
         self._next_id = int(first_id)
         self._next_event_id = 0
@@ -395,7 +407,7 @@ class ImpulseDetector:
                     self._open = _Open(i + c.base, base[k].copy(), float(score[k]))
                     self.stats.contacts += 1
                 elif ti - self._last_event_end >= self._quiet_ns:
-                    out += self._external(pos[k], ti)
+                    out += self._external(pos[k], ti, i)
                 continue
             d = float(self._score((c.m[i] - ev.baseline)[None, :])[0])
             ev.peak_score = max(ev.peak_score, d)
@@ -435,8 +447,12 @@ class ImpulseDetector:
             c.drop_before(c.base + k)
 
     # -- free space ----------------------------------------------------------------------------
-    def _external(self, pos: list[float], ti: int) -> list[Observation]:
-        """A free-space observation at ``pos`` if one is due (time or distance)."""
+    def _external(self, pos: list[float], ti: int, row: int) -> list[Observation]:
+        """A free-space observation at ``pos`` (buffer row ``row``) if one is due (time or
+        distance) and the body is level enough to be the map's level disc there
+        (``external_max_tilt_deg``; an unknown attitude counts as level). A sample skipped
+        for its tilt counts as taken for the schedule: one is due again a period (or a
+        spacing) later, so a body lying on its side is counted once per period."""
         s = self.settings
         due = ti - self._last_external_t >= self._external_ns
         if not math.isfinite(pos[0]):
@@ -452,6 +468,9 @@ class ImpulseDetector:
             return []
         self._last_external_t = ti
         self._last_external_pos = pos
+        if tilt_cos(self._c.q[row]) < self._level_cos:
+            self.stats.tilted += 1
+            return []
         return [self._observe(ti, np.array(pos), LABEL_OUTSIDE, np.zeros(3), -1, 0.0)]
 
     def _observe(self, t_ns, x, label, normal, event_id, accel_g, **extra) -> Observation:

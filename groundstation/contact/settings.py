@@ -141,6 +141,21 @@ class ContactSettings:
         will fly through. Sampled by distance, that evidence grows with the path flown, not
         with hover time, and merging (``mapping.merge``) bounds it by the volume explored.
         On the bundled logs the paper's 0.5 Hz left every gust unflagged (fp recall 0).
+    external_max_tilt_deg : float
+        The impulse detector takes no free-space sample while the body is tilted more than
+        this from level (180: no cut); such samples are counted (``stats.tilted``). The map
+        reads a free-space sample as a level body there: its centre at the potential a drone
+        centre has (+1), and the disc of ``vehicle`` radius round it, a body half-height up and
+        down, swept clear of surface (``mapping/training.py``). A body on its side is a
+        vertical disc: its centre sits a half-height from the wall it leans on, and the level
+        disc round it reaches ~0.2 m into that wall. Two MuJoCo flights of reporting seeds
+        116-118 crashed into a structure and lay there at 90 deg for 470-550 s: the map read
+        hundreds of samples of a level body through the wall and flagged 9 true touches
+        (of MuJoCo's 21 flagged), and missed 34-40 % of the touched surface; with the cut 5
+        (four of them the crash's own impacts) and 12-26 %. At 45 deg a 0.2 m disc's rim is 0.14 m
+        (about three half-heights) off the level slab; no level flight of either engine
+        reached it (99th percentile 20-35 deg on every tuning and reporting flight), the
+        aggressive 'free' pilot did for 2-3 s per minute, and flips and crashes did.
     drone_radius_m, drone_height_m : float
         Radius r and height h of the cylinder circumscribing the drone (contact point rule).
     normal_spread_deg : float
@@ -213,6 +228,7 @@ class ContactSettings:
     sustain_normal_m: float = 0.05
     external_rate_hz: float = 0.5
     external_spacing_m: float = 0.1
+    external_max_tilt_deg: float = 45.0
     drone_radius_m: float = 0.2
     drone_height_m: float = 0.1
     normal_spread_deg: float = 20.0
@@ -244,6 +260,11 @@ class ContactSettings:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"contact.{name} must be > 0, got {getattr(self, name)!r}")
+        if not 0 < self.external_max_tilt_deg <= 180:
+            raise ValueError(
+                "contact.external_max_tilt_deg must be in (0, 180], got "
+                f"{self.external_max_tilt_deg!r}"
+            )
         if not 0 <= self.normal_spread_deg < 90:
             raise ValueError(
                 f"contact.normal_spread_deg must be in [0, 90), got {self.normal_spread_deg!r}"

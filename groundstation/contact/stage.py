@@ -87,6 +87,7 @@ class StageStats:
     observations: int = 0
     events: int = 0
     at_floor: int = 0  # candidates rejected because they began with the body at the floor
+    tilted: int = 0  # free-space samples not taken: the body was tilted past the limit
 
     def as_dict(self) -> dict[str, int]:
         return dataclasses.asdict(self)
@@ -383,6 +384,7 @@ class ContactStage:
                     "normal": np.array(ev.normal, dtype=np.float64).reshape(3),
                 }, t))  # fmt: skip
         self._events_out = len(events)
+        self.stats.tilted = self.detector.stats.tilted
         for o in obs:
             payload, arrays = observation_payload(o)
             out.append(self._env("observations", payload, arrays, o.t_ns))

@@ -251,6 +251,14 @@ def rejected_text(events) -> str:
     )
 
 
+def observations_text(result) -> str:
+    """How many observations the detector made, and how many free-space samples it skipped
+    because the body was tilted past ``contact.external_max_tilt_deg`` (a flip, a crash)."""
+    tilted = int(((result.stats or {}).get("detector") or {}).get("tilted") or 0)
+    n = str(len(result.observations))
+    return f"{n} ({tilted} free-space samples skipped: body tilted)" if tilted else n
+
+
 def truth_rows(report: Mapping[str, Any]) -> list[tuple[str, str]]:
     """The report's truth scores as (label, text) summary rows (none without truth): the
     accuracy next to what it costs (surface missing, surface invented, and where the largest
@@ -460,7 +468,7 @@ def write_report_html(
             + (f", {n_wait} awaiting a second touch)" if n_wait else ")"),
         ),
         ("candidates rejected", rejected_text(result.events)),
-        ("observations", str(len(result.observations))),
+        ("observations", observations_text(result)),
         ("refits", f"{len(result.fits)} (median {_fmt(report.get('refit_s_median'))} s)"),
     ]
     spent = refit_time_text(report.get("refit_time_s") or {})

@@ -270,6 +270,51 @@ def test_free_space_follows_time_and_path_and_pauses_after_an_impulse():
     assert after[0] < end + quiet + 0.1 / 0.55 + 0.01  # sampling resumes once the pause is over
 
 
+def _tilted_during(data, t0, t1, deg, axis=(1.0, 0.0, 0.0)):
+    """``data`` with the attitude turned ``deg`` about a horizontal body axis from t0 to t1 s."""
+    t, f, q, pos = data
+    q = q.copy()
+    s = (t - t[0]) / 1e9
+    q[(s >= t0) & (s < t1)] = quat_from_axis_angle(list(axis), math.radians(deg))
+    return t, f, q, pos
+
+
+@pytest.mark.parametrize("deg, axis", [(90.0, (1, 0, 0)), (60.0, (0, 1, 0)), (180.0, (1, 0, 0))])
+def test_no_free_space_while_the_body_is_tilted_past_the_limit(deg, axis):
+    # 0.5 m/s: a free-space sample every 0.1 m (0.2 s); tilted from 4 to 8 s (a flip, a crash)
+    data = _tilted_during(flight(duration=12.0, v0=(0.5, 0.0, 0.0)), 4.0, 8.0, deg, axis)
+    det, obs = run(data)
+    t = np.array([o.t_ns for o in obs if o.label == LABEL_OUTSIDE]) / 1e9 - 1.0
+    assert obs and all(o.label == LABEL_OUTSIDE for o in obs)
+    assert [x for x in t if 4.0 <= x < 8.0] == []
+    assert t[t < 4.0].size >= 19 and t[t >= 8.0].size >= 19
+    assert t[t >= 8.0][0] < 8.0 + 0.2 + 0.01  # sampling resumes once the body is level again
+    # the skipped ones count once per due slot, not per IMU sample
+    assert det.stats.tilted == pytest.approx(4.0 / 0.2, abs=1)
+
+
+def test_free_space_at_a_tilt_within_the_limit_and_with_no_limit():
+    data = flight(duration=12.0, v0=(0.5, 0.0, 0.0))
+    level = [o.t_ns for o in run(data)[1]]
+    det, obs = run(_tilted_during(data, 4.0, 8.0, 44.0))
+    assert [o.t_ns for o in obs] == level and det.stats.tilted == 0
+    no_limit = ContactSettings(external_max_tilt_deg=180.0)
+    det, obs = run(_tilted_during(data, 4.0, 8.0, 90.0), no_limit)
+    assert [o.t_ns for o in obs] == level and det.stats.tilted == 0
+    with pytest.raises(ValueError, match="external_max_tilt_deg"):
+        ContactSettings(external_max_tilt_deg=0.0)
+
+
+def test_tilt_cos_matches_the_rotation_matrix():
+    from firmware_bridge.frames import quat_to_matrix
+    from groundstation.contact.impulse import tilt_cos
+
+    rng = np.random.default_rng(3)
+    for q in rng.normal(size=(50, 4)) * 2.0:
+        assert tilt_cos(q) == pytest.approx(quat_to_matrix(q)[2, 2], abs=1e-12)
+    assert math.isnan(tilt_cos(np.zeros(4))) and math.isnan(tilt_cos([math.nan, 0, 0, 1]))
+
+
 def test_rejected_candidates_make_no_observations():
     always_false = Logistic(("log_peak_g",), (0.0,), (1.0,), (0.0,), 10.0)
     model = EvidenceModel(always_false, always_false, "test")

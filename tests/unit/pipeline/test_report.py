@@ -7,6 +7,7 @@ import math
 from groundstation.bus.envelope import Envelope, Header
 from groundstation.pipeline.report import (
     EventRow,
+    observations_text,
     p_false_cell,
     refit_time_text,
     rejected_text,
@@ -82,6 +83,16 @@ def test_the_summary_counts_the_candidates_rejected_at_the_floor():
               _event("rejected"), _event("begin", at_floor=False)]  # fmt: skip
     assert rejected_text(events) == "3 (1 begun with the body at the floor)"
     assert rejected_text(events[1:]) == "2"
+
+
+def test_the_summary_counts_the_free_space_samples_skipped_for_a_tilted_body():
+    from types import SimpleNamespace
+
+    crashed = SimpleNamespace(observations=[0] * 7, stats={"detector": {"tilted": 2750}})
+    assert observations_text(crashed) == "7 (2750 free-space samples skipped: body tilted)"
+    level = SimpleNamespace(observations=[0] * 7, stats={"detector": {"tilted": 0}})
+    assert observations_text(level) == "7"
+    assert observations_text(SimpleNamespace(observations=[], stats={})) == "0"
 
 
 def test_the_summary_says_where_the_refits_time_went():
