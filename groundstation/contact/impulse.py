@@ -241,7 +241,8 @@ class ImpulseDetector:
         self._last_external_pos: list[float] | None = None
         self._quiet_ns = int(s.quiet_s * 1e9)
         self._external_ns = int(1e9 / s.external_rate_hz)
-        self._level_cos = math.cos(math.radians(s.external_max_tilt_deg))
+        tilt = s.external_max_tilt_deg  # 180: every attitude is level enough
+        self._level_cos = None if tilt >= 180.0 else math.cos(math.radians(tilt))
         self._seg_start: int | None = None
         self._next_id = int(first_id)
         self._next_event_id = 0
@@ -468,7 +469,7 @@ class ImpulseDetector:
             return []
         self._last_external_t = ti
         self._last_external_pos = pos
-        if tilt_cos(self._c.q[row]) < self._level_cos:
+        if self._level_cos is not None and tilt_cos(self._c.q[row]) < self._level_cos:
             self.stats.tilted += 1
             return []
         return [self._observe(ti, np.array(pos), LABEL_OUTSIDE, np.zeros(3), -1, 0.0)]

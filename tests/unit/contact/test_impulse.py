@@ -283,7 +283,7 @@ def _tilted_during(data, t0, t1, deg, axis=(1.0, 0.0, 0.0)):
 def test_no_free_space_while_the_body_is_tilted_past_the_limit(deg, axis):
     # 0.5 m/s: a free-space sample every 0.1 m (0.2 s); tilted from 4 to 8 s (a flip, a crash)
     data = _tilted_during(flight(duration=12.0, v0=(0.5, 0.0, 0.0)), 4.0, 8.0, deg, axis)
-    det, obs = run(data)
+    det, obs = run(data, ContactSettings(external_max_tilt_deg=45.0))
     t = np.array([o.t_ns for o in obs if o.label == LABEL_OUTSIDE]) / 1e9 - 1.0
     assert obs and all(o.label == LABEL_OUTSIDE for o in obs)
     assert [x for x in t if 4.0 <= x < 8.0] == []
@@ -293,14 +293,16 @@ def test_no_free_space_while_the_body_is_tilted_past_the_limit(deg, axis):
     assert det.stats.tilted == pytest.approx(4.0 / 0.2, abs=1)
 
 
-def test_free_space_at_a_tilt_within_the_limit_and_with_no_limit():
+def test_free_space_at_a_tilt_within_the_limit_and_with_no_limit_the_default():
     data = flight(duration=12.0, v0=(0.5, 0.0, 0.0))
     level = [o.t_ns for o in run(data)[1]]
-    det, obs = run(_tilted_during(data, 4.0, 8.0, 44.0))
+    det, obs = run(
+        _tilted_during(data, 4.0, 8.0, 44.0), ContactSettings(external_max_tilt_deg=45.0)
+    )
     assert [o.t_ns for o in obs] == level and det.stats.tilted == 0
-    no_limit = ContactSettings(external_max_tilt_deg=180.0)
-    det, obs = run(_tilted_during(data, 4.0, 8.0, 90.0), no_limit)
-    assert [o.t_ns for o in obs] == level and det.stats.tilted == 0
+    for no_limit in (ContactSettings(), ContactSettings(external_max_tilt_deg=180.0)):
+        det, obs = run(_tilted_during(data, 4.0, 8.0, 180.0), no_limit)  # upside down
+        assert [o.t_ns for o in obs] == level and det.stats.tilted == 0
     with pytest.raises(ValueError, match="external_max_tilt_deg"):
         ContactSettings(external_max_tilt_deg=0.0)
 
