@@ -214,3 +214,28 @@ def test_events_without_mocap_encode_for_the_bus():
         assert back.payload == e.payload
     feats = [e.payload["features"] for e in events if "features" in e.payload]
     assert feats and all(f["approach_mps"] is None and f["peak_g"] > 1.0 for f in feats)
+
+
+def test_the_stage_counts_the_free_space_a_tilted_body_skips():
+    from groundstation.contact.settings import ContactSettings
+
+    imu, att, pose = streams(duration_s=6.0, bumps=())
+    on_side = np.array([math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0])  # 90 deg roll
+    for k, e in enumerate(att):
+        if 2.0 <= k / 200 < 4.0:
+            att[k] = env("samples.attitude", e.header.source_ns, q_wxyz=on_side)
+    free_t, tilted = {}, {}
+    for limit in (45.0, 180.0):
+        st = ContactStage(ContactSettings(external_max_tilt_deg=limit))
+        msgs = sorted(imu + att + pose, key=lambda e: e.header.source_ns)
+        out = st.push_many(msgs) + st.flush()
+        t = [e.header.source_ns / 1e9 - 1.0 for e in out if e.topic == "observations"]
+        free_t[limit] = np.array(t)
+        tilted[limit] = st.stats.tilted
+        assert st.stats.tilted == st.detector.stats.tilted
+    # 0.3 m/s: a sample every 1/3 s of path; none while on its side with the limit, all without
+    assert not np.any((free_t[45.0] >= 2.0) & (free_t[45.0] < 4.0))
+    assert np.sum((free_t[180.0] >= 2.0) & (free_t[180.0] < 4.0)) >= 5
+    skipped = len(free_t[180.0]) - len(free_t[45.0])
+    assert skipped == pytest.approx(6, abs=1)  # 0.6 m of path on its side, one per 0.1 m
+    assert tilted == {45.0: skipped, 180.0: 0}
