@@ -59,7 +59,7 @@ from groundstation.contact.detector import (
     Observation,
     earth_acceleration,
 )
-from groundstation.contact.impulse import ImpulseDetector
+from groundstation.contact.impulse import ImpulseDetector, tilt_cos
 from groundstation.contact.settings import AlignmentSettings, ContactSettings
 from groundstation.contact.vehicle import VehicleSettings
 from groundstation.sync.aligner import PoseBuffer
@@ -88,10 +88,22 @@ class StageStats:
     events: int = 0
     at_floor: int = 0  # candidates rejected because they began with the body at the floor
     tilted: int = 0  # free-space samples not taken: the body was tilted past the limit
+    upset_ms: int = 0  # data time with the body tilted past UPSET_TILT_DEG (a flip, a crash)
+    upset_first_ns: int = -1  # data time of the first such sample (-1: none)
 
     def as_dict(self) -> dict[str, int]:
         return dataclasses.asdict(self)
 
+
+#: A body tilted further than this from level is *upset*: flipped by an impact, or down after a
+#: crash. Level flight stays under ~40 deg (the 99th percentile of the tilt is 20-38 deg on every
+#: evaluation flight that neither crashed nor flew the aggressive 'free' pilot); the stage
+#: counts the data time past it (``StageStats.upset_ms``), which report.html and the benches
+#: show, so a crashed flight is known as one.
+UPSET_TILT_DEG = 60.0
+_UPSET_COS = math.cos(math.radians(UPSET_TILT_DEG))
+#: The longest step between two IMU samples counted as upset time (a gap counts this much).
+_UPSET_MAX_STEP_NS = 100_000_000
 
 #: A buffer of attitudes or poses is trimmed (by time) once it holds this many entries...
 _TRIM_AT = 8192
@@ -221,6 +233,8 @@ class ContactStage:
         self._wm = {"imu": None, "attitude": None, "pose": None}
         self._seq = dict.fromkeys(OUTPUT_TOPICS, 0)
         self._last_imu: int | None = None
+        self._last_processed: int | None = None  # IMU time of the last sample processed
+        self._upset_ns = 0
         self.stats = StageStats()
 
     # -- input ---------------------------------------------------------------------------------
@@ -335,11 +349,24 @@ class ContactStage:
         self._att.drop_before(keep)
         self._pose.drop_before(keep)
 
+    def _count_upset(self, t: int, q: np.ndarray) -> None:
+        """Add the step since the last processed sample to ``upset_ms`` when the body is
+        tilted past ``UPSET_TILT_DEG`` at ``t`` (attitude ``q``, w x y z FRD -> NED)."""
+        prev, self._last_processed = self._last_processed, t
+        if not tilt_cos(q) < _UPSET_COS:  # level enough, or an unknown attitude
+            return
+        if self.stats.upset_first_ns < 0:
+            self.stats.upset_first_ns = t
+        if prev is not None:
+            self._upset_ns += min(max(t - prev, 0), _UPSET_MAX_STEP_NS)
+            self.stats.upset_ms = self._upset_ns // 1_000_000
+
     def _process(self, t: int, acc: np.ndarray) -> list[Envelope]:
         att = self._att.at(t)
         if not att:
             self.stats.no_attitude += 1
             return []
+        self._count_upset(t, att.quaternion)
         pose = self._pose.at(t)
         if not pose:
             self.stats.no_pose += 1

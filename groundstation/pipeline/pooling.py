@@ -16,6 +16,8 @@ reported (``missing_area_near_detected_m2`` over ``touched_area_near_detected_m2
 line), of those that have one measured, and how many of them each cause drew
 (``phantom_max_patch_cause``, ``pipeline.scoring.patch_sources``; ``not recorded`` for reports
 written before it existed).
+``upset``: the tasks whose body was tilted past 60 deg (``contact.stage.UPSET_TILT_DEG``) for
+over ``UPSET_LINE_S`` (flipped or crashed), of those that recorded it.
 ``mask_curve``: the reports' ``mask_curve`` rows (the final mesh at stricter confidence masks,
 ``pipeline.scoring.mask_curve``) pooled per mask (:func:`pool_mask_curve`): what the phantom
 line would cost in missing surface if the mask alone were tightened.
@@ -209,6 +211,7 @@ def pool(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "metrics": metrics,
         "shares": shares,
         "large_patches": large_patches(reports),
+        "upset": upset_flights(reports),
         "mask_curve": pool_mask_curve(reports),
         "u_auc": u_auc(
             [u for k, u in events if k == "gust"], [u for k, u in events if k != "gust"]
@@ -239,6 +242,25 @@ def large_patches(reports: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         by_cause[cause] = by_cause.get(cause, 0) + 1
     return {"line_m2": PATCH_LINE_M2, "flights": len(measured), "over": len(over),
             "by_cause": by_cause}  # fmt: skip
+
+
+#: A flight whose body was tilted past ``contact.stage.UPSET_TILT_DEG`` for longer than this
+#: (s) flipped or crashed: the summaries count such flights beside the figures they weigh on.
+UPSET_LINE_S = 1.0
+
+
+def upset_flights(reports: Sequence[Mapping[str, Any]]) -> dict[str, int]:
+    """How many reports say the body was upset (tilted past 60 deg) for over
+    :data:`UPSET_LINE_S`, of those that recorded it (``stats.detector.upset_ms``)."""
+    known = [((r.get("stats") or {}).get("detector") or {}).get("upset_ms") for r in reports]
+    known = [float(v) for v in known if v is not None]
+    return {"over": sum(v > 1e3 * UPSET_LINE_S for v in known), "flights": len(known)}
+
+
+def upset_text(p: Mapping[str, Any]) -> str:
+    """``2/36``: the pooled :func:`upset_flights` in a cell (``-`` when none recorded it)."""
+    u = p.get("upset") or {}
+    return f"{u['over']}/{u['flights']}" if u.get("flights") else "-"
 
 
 def pool_mask_curve(reports: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
@@ -376,6 +398,9 @@ def summary_markdown(summary: Mapping[str, Any], title: str = "groundstation bat
     rows = {
         f"flights with a phantom patch over {PATCH_LINE_M2} m² (by cause)": lambda p: (
             large_patches_text(p["large_patches"])
+        ),
+        f"flights upset (tilted past 60 deg for over {UPSET_LINE_S:g} s: flipped or crashed)": (
+            upset_text
         ),
         "u-AUC gust vs touch": lambda p: fmt(p["u_auc"], ".2f"),
         "refit median (s)": lambda p: f"{fmt(p['refit_s_median'], '.2f')} ({p['refits']} refits)",

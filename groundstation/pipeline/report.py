@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from groundstation.contact.stage import UPSET_TILT_DEG
 from groundstation.viewer.scene import STATE_COLORS, STATE_NAMES
 
 _TRUTH_COLORS = {"touch": "#1f77b4", "slow_touch": "#17becf", "gust": "#d62728"}
@@ -259,6 +260,21 @@ def observations_text(result) -> str:
     return f"{n} ({tilted} free-space samples skipped: body tilted)" if tilted else n
 
 
+def upset_text(result) -> str:
+    """How long the body was tilted past ``contact.stage.UPSET_TILT_DEG`` (a flip, or down
+    after a crash), and from when: ``"470.2 s, first at 124.0 s (a flip or a crash)"``; ``no``
+    when never."""
+    det = (result.stats or {}).get("detector") or {}
+    ms, first = int(det.get("upset_ms") or 0), int(det.get("upset_first_ns", -1))
+    if first < 0:
+        return "no"
+    at = (first - result.start_ns) / 1e9
+    return (
+        f"tilted past {UPSET_TILT_DEG:g} deg for {ms / 1e3:.1f} s, first at {at:.1f} s"
+        " (a flip or a crash)"
+    )
+
+
 def truth_rows(report: Mapping[str, Any]) -> list[tuple[str, str]]:
     """The report's truth scores as (label, text) summary rows (none without truth): the
     accuracy next to what it costs (surface missing, surface invented, and where the largest
@@ -469,6 +485,7 @@ def write_report_html(
         ),
         ("candidates rejected", rejected_text(result.events)),
         ("observations", observations_text(result)),
+        ("vehicle upset", upset_text(result)),
         ("refits", f"{len(result.fits)} (median {_fmt(report.get('refit_s_median'))} s)"),
     ]
     spent = refit_time_text(report.get("refit_time_s") or {})

@@ -233,9 +233,20 @@ def test_the_stage_counts_the_free_space_a_tilted_body_skips():
         free_t[limit] = np.array(t)
         tilted[limit] = st.stats.tilted
         assert st.stats.tilted == st.detector.stats.tilted
+        # upset (past 60 deg) for the 2 s on its side, whatever the free-space limit
+        assert st.stats.upset_ms == pytest.approx(2000, abs=10)
+        assert st.stats.upset_first_ns == 1_000 * MS + 400 * 5 * MS
     # 0.3 m/s: a sample every 1/3 s of path; none while on its side with the limit, all without
     assert not np.any((free_t[45.0] >= 2.0) & (free_t[45.0] < 4.0))
     assert np.sum((free_t[180.0] >= 2.0) & (free_t[180.0] < 4.0)) >= 5
     skipped = len(free_t[180.0]) - len(free_t[45.0])
     assert skipped == pytest.approx(6, abs=1)  # 0.6 m of path on its side, one per 0.1 m
     assert tilted == {45.0: skipped, 180.0: 0}
+
+
+def test_a_level_flight_is_never_upset():
+    imu, att, pose = streams(duration_s=3.0, bumps=(1.0,))
+    st = ContactStage()
+    st.push_many(sorted(imu + att + pose, key=lambda e: e.header.source_ns))
+    st.flush()
+    assert st.stats.events == 1 and st.stats.upset_ms == 0 and st.stats.upset_first_ns == -1

@@ -25,6 +25,7 @@ from groundstation.pipeline.pooling import (
     summarize,
     summary_markdown,
     u_auc,
+    upset_text,
 )
 from groundstation.runtime.configuration import recording_resolver
 
@@ -254,6 +255,19 @@ def test_pool_counts_the_flights_over_the_patch_line_by_cause():
     assert p["by_cause"] == {"touches": 2, "false contact": 1, "not recorded": 1}
     assert large_patches_text(p) == "4/6 (touches 2, false contact 1, not recorded 1)"
     assert large_patches_text(pool(reps[1:2])["large_patches"]) == "0/1"
+
+
+def test_pool_counts_the_flights_upset_for_over_a_second():
+    reps = []
+    for ms in (0, 999, 1001, 470_000, None):
+        r = _record(0.1, 1, 1, 1)
+        if ms is not None:  # None: a report from before the stage counted it
+            r["report"]["stats"] = {"detector": {"upset_ms": ms}}
+        reps.append(r)
+    p = pool(reps)
+    assert p["upset"] == {"over": 2, "flights": 4}
+    assert upset_text(p) == "2/4"
+    assert upset_text(pool(reps[4:])) == "-"
 
 
 def test_summary_lists_every_variant_log_and_failure():

@@ -12,6 +12,7 @@ from groundstation.pipeline.report import (
     refit_time_text,
     rejected_text,
     truth_rows,
+    upset_text,
 )
 
 
@@ -93,6 +94,21 @@ def test_the_summary_counts_the_free_space_samples_skipped_for_a_tilted_body():
     level = SimpleNamespace(observations=[0] * 7, stats={"detector": {"tilted": 0}})
     assert observations_text(level) == "7"
     assert observations_text(SimpleNamespace(observations=[], stats={})) == "0"
+
+
+def test_the_summary_says_when_the_vehicle_was_upset():
+    from types import SimpleNamespace
+
+    crashed = SimpleNamespace(
+        start_ns=10**9, stats={"detector": {"upset_ms": 470_212, "upset_first_ns": 125 * 10**9}}
+    )
+    assert (
+        upset_text(crashed)
+        == "tilted past 60 deg for 470.2 s, first at 124.0 s (a flip or a crash)"
+    )
+    level = SimpleNamespace(start_ns=0, stats={"detector": {"upset_ms": 0, "upset_first_ns": -1}})
+    assert upset_text(level) == "no"
+    assert upset_text(SimpleNamespace(start_ns=0, stats={})) == "no"  # a report before it
 
 
 def test_the_summary_says_where_the_refits_time_went():
