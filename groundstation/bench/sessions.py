@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from groundstation.bench.detector import FlightSpec, flight_suite
+from groundstation.contact.stage import UPSET_TILT_DEG
 from groundstation.pipeline.batch import Plan, Variant
 from groundstation.pipeline.pooling import (
     PATCH_LINE_M2,
@@ -190,8 +191,8 @@ def markdown(comparison: Mapping[str, Any], overrides: Mapping[str, Sequence[str
                 f"flights with a phantom patch over {PATCH_LINE_M2} m² (by cause)": lambda p: (
                     large_patches_text(p["large_patches"])
                 ),
-                f"flights upset (tilted past 60 deg for over {UPSET_LINE_S:g} s: flipped or "
-                "crashed)": upset_text,
+                f"flights upset (tilted past {UPSET_TILT_DEG:g} deg for over {UPSET_LINE_S:g} s: "
+                "flipped or crashed)": upset_text,
                 "u-AUC gust vs touch": lambda p: fmt(p["u_auc"], ".2f"),
                 "refit median (s)": lambda p: fmt(p["refit_s_median"], ".2f"),
                 "task wall median (s)": lambda p: fmt(p["task_wall_s"]["median"], ".1f"),

@@ -36,6 +36,7 @@ import statistics
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
+from groundstation.contact.stage import UPSET_TILT_DEG
 from groundstation.pipeline.batch import LogInput, Plan
 
 #: Truth metrics of ``report.json`` pooled by a batch, and which way is better.
@@ -250,7 +251,7 @@ UPSET_LINE_S = 1.0
 
 
 def upset_flights(reports: Sequence[Mapping[str, Any]]) -> dict[str, int]:
-    """How many reports say the body was upset (tilted past 60 deg) for over
+    """How many reports say the body was upset (tilted past ``UPSET_TILT_DEG``) for over
     :data:`UPSET_LINE_S`, of those that recorded it (``stats.detector.upset_ms``)."""
     known = [((r.get("stats") or {}).get("detector") or {}).get("upset_ms") for r in reports]
     known = [float(v) for v in known if v is not None]
@@ -399,9 +400,8 @@ def summary_markdown(summary: Mapping[str, Any], title: str = "groundstation bat
         f"flights with a phantom patch over {PATCH_LINE_M2} m² (by cause)": lambda p: (
             large_patches_text(p["large_patches"])
         ),
-        f"flights upset (tilted past 60 deg for over {UPSET_LINE_S:g} s: flipped or crashed)": (
-            upset_text
-        ),
+        f"flights upset (tilted past {UPSET_TILT_DEG:g} deg for over {UPSET_LINE_S:g} s: "
+        "flipped or crashed)": upset_text,
         "u-AUC gust vs touch": lambda p: fmt(p["u_auc"], ".2f"),
         "refit median (s)": lambda p: f"{fmt(p['refit_s_median'], '.2f')} ({p['refits']} refits)",
         "task wall mean / median / max (s)": lambda p: " / ".join(

@@ -262,10 +262,11 @@ def observations_text(result) -> str:
 
 def upset_text(result) -> str:
     """How long the body was tilted past ``contact.stage.UPSET_TILT_DEG`` (a flip, or down
-    after a crash), and from when: ``"470.2 s, first at 124.0 s (a flip or a crash)"``; ``no``
-    when never."""
+    after a crash), and from when: ``"tilted past 60 deg for 470.2 s, first at 124.0 s (a flip
+    or a crash)"``; ``no`` when never, or for a report from before the stage counted it."""
     det = (result.stats or {}).get("detector") or {}
-    ms, first = int(det.get("upset_ms") or 0), int(det.get("upset_first_ns", -1))
+    first = det.get("upset_first_ns")
+    ms, first = int(det.get("upset_ms") or 0), -1 if first is None else int(first)
     if first < 0:
         return "no"
     at = (first - result.start_ns) / 1e9

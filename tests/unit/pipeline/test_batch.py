@@ -287,6 +287,7 @@ def test_summary_lists_every_variant_log_and_failure():
     text = summary_markdown(s)
     assert "| chamfer_m | low |" in text and "truncated log" in text
     assert "| flights with a phantom patch over 0.1 m² (by cause) | 0/0 | 0/0 |" in text
+    assert "| flights upset (tilted past 60 deg for over 1 s: flipped or crashed) | - | - |" in text
     assert "| a | base | failed |" in text
     assert text.count("(1.00, -2.50, 0.75)") == 1  # where that log's largest phantom patch is
 
