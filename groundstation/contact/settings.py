@@ -157,8 +157,8 @@ class ContactSettings:
         flags at 45). Judged once at 45 on fresh reporting seeds 119-121 (``bench sessions
         --engines simple,mujoco --seeds 119-121 --variant tilt45:contact.external_max_tilt_deg
         =45 --variant base:contact.external_max_tilt_deg=180``), by a rule written before the
-        run: on the MuJoCo flights that crashed and lay on their side (250-261 samples
-        skipped) or flipped (82) the true touches beside them were no longer flagged (MuJoCo
+        run: on the three MuJoCo flights that crashed (82-261 samples skipped; two lay on
+        their side for ~480 s) the true touches beside them were no longer flagged (MuJoCo
         touches flagged 13 -> 6 of 335, missing within 0.2 m by area 5.6 -> 4.5 %), but the
         touches kept grew the patch a crashed pier flight already had (1.13 -> 1.31 m^2; its
         control 1.34 -> 1.62), the mean largest patch rose 0.083 -> 0.088 m^2, and the rule
