@@ -111,7 +111,7 @@ def _build(cls: type, data: dict[str, Any], where: str) -> Any:
     except (TypeError, ValueError) as exc:
         if isinstance(exc, ConfigError):
             raise
-        raise ConfigError(f"{where or 'config'}: {exc}") from exc
+        raise ConfigError(f"{where.rstrip('.') or 'config'}: {exc}") from exc
 
 
 def _set_path(tree: dict[str, Any], dotted: str, value: str) -> None:

@@ -50,6 +50,12 @@ def test_bad_settings_name_the_problem(override, needle):
         load_config(None, [override])
 
 
+def test_a_value_a_section_refuses_names_the_section_once():
+    with pytest.raises(ConfigError) as err:
+        load_config(None, ["contact.external_max_tilt_deg=0"])
+    assert str(err.value).startswith("contact: contact.external_max_tilt_deg must be in (0, 180]")
+
+
 def test_missing_and_malformed_files(tmp_path):
     with pytest.raises(ConfigError, match="does not exist"):
         load_config(tmp_path / "missing.toml")
