@@ -27,16 +27,21 @@ missed from the recording
 data a restart could not recover       ``DETECTOR LOST 40 SAMPLES IN RESTART``,
                                        ``REC LOST 12 AT TAKEOVER``, ``LINK RESTART GAP 0.43 s``
 the monitor itself behind              ``STATUS LAGS 2.1 s``
+the body tilted past 60 deg for        ``UPSET 3.2 s (TILTED 88 DEG)``: flipped by an impact, or
+> 0.5 s (``samples.attitude``)         down after a crash (``contact.stage.UPSET_TILT_DEG``)
 =====================================  =========================================================
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from typing import Any
 
 from groundstation.bus.envelope import Envelope
+from groundstation.contact.impulse import tilt_cos
+from groundstation.contact.stage import UPSET_TILT_DEG
 
 S = 1_000_000_000
 #: Streams watched for silence: topic -> name on the status line.
@@ -58,6 +63,7 @@ class AlertSettings:
     restart_note_s: float = 10.0
     loss_window_s: float = 5.0
     monitor_lag_s: float = 1.0
+    upset_s: float = 0.5
 
 
 def _count_rejected(tree: Any) -> int:
@@ -102,6 +108,8 @@ class Alerts:
         self.restart_gaps: dict[str, list[float]] = {}
         self.events: list[dict[str, Any]] = []
         self._open: dict[str, dict[str, Any]] = {}
+        self.upset_since_ns: int | None = None  # first attitude past UPSET_TILT_DEG, in a row
+        self.upset_deg = 0.0  # the latest such attitude's tilt
 
     # -- input ---------------------------------------------------------------------------------
     def on_message(self, env: Envelope, now_ns: int) -> None:
@@ -110,7 +118,9 @@ class Alerts:
         self.last[topic] = now_ns
         if topic in STREAMS and env.header.recv_ns:
             self.monitor_lag_s = max(0.0, (now_ns - env.header.recv_ns) / S)
-        if topic == "status":
+        if topic == "samples.attitude":
+            self._attitude(env.arrays.get("q_wxyz"), now_ns)
+        elif topic == "status":
             name = str(p.get("process", "?"))
             self.status[name] = dict(p)
             self._restart_gap(name, p)
@@ -133,6 +143,22 @@ class Alerts:
                 and self.external_seen >= 1
             ):
                 self.map_ready_ns = now_ns
+
+    def _attitude(self, q: Any, now_ns: int) -> None:
+        """Follow whether the body is upset (tilted past ``UPSET_TILT_DEG``); an attitude that
+        cannot be read changes nothing."""
+        try:
+            c = tilt_cos(q)
+        except (TypeError, ValueError):  # no quaternion, or not four numbers
+            return
+        if math.isnan(c):
+            return
+        if c < math.cos(math.radians(UPSET_TILT_DEG)):
+            if self.upset_since_ns is None:
+                self.upset_since_ns = now_ns
+            self.upset_deg = math.degrees(math.acos(max(-1.0, min(1.0, c))))
+        else:
+            self.upset_since_ns = None
 
     def _restart_gap(self, name: str, p: Mapping[str, Any]) -> None:
         topics = p.get("topics") or {}
@@ -193,6 +219,10 @@ class Alerts:
                 out[f"catchup:{name}"] = f"{name.upper()} LOST {cu['lost']} {what} IN RESTART"
         if self.monitor_lag_s > self.s.monitor_lag_s:
             out["monitor_lag"] = f"STATUS LAGS {self.monitor_lag_s:.1f} s"
+        if self.upset_since_ns is not None:
+            held = (now_ns - self.upset_since_ns) / S
+            if held > self.s.upset_s:
+                out["upset"] = f"UPSET {held:.1f} s (TILTED {self.upset_deg:.0f} DEG)"
         return out
 
     def _link(self, out: dict[str, str], now_ns: int) -> None:

@@ -10,8 +10,8 @@ from groundstation.runtime.status import StatusBoard
 S = 1_000_000_000
 
 
-def env(topic: str, payload: dict | None = None, recv_ns: int = 0) -> Envelope:
-    return Envelope(topic, Header(topic, 1, 0, 0, recv_ns, 1), payload or {}, {})
+def env(topic: str, payload: dict | None = None, recv_ns: int = 0, **arrays) -> Envelope:
+    return Envelope(topic, Header(topic, 1, 0, 0, recv_ns, 1), payload or {}, arrays)
 
 
 def status(name: str, state: str = "running", **topics) -> Envelope:
@@ -143,3 +143,28 @@ def test_a_detector_reading_samples_late_is_shown_behind_until_it_catches_up():
     a.on_message(status("detector", lag_s=0.05), 3 * S)
     assert "BEHIND" not in texts(a, 3 * S)
     assert [e["text"] for e in a.events] == ["DETECTOR BEHIND 12.3 s"]
+
+
+def test_a_body_tilted_past_60_deg_for_half_a_second_is_upset_until_it_is_level_again():
+    import math
+
+    import numpy as np
+
+    def attitude(deg: float) -> Envelope:  # rolled by deg about the body's x axis
+        h = math.radians(deg) / 2
+        return env("samples.attitude", q_wxyz=np.array([math.cos(h), math.sin(h), 0.0, 0.0]))
+
+    a = Alerts(0)
+    a.on_message(attitude(5.0), 1 * S)
+    a.on_message(attitude(40.0), int(1.5 * S))  # a hard manoeuvre: not upset
+    assert "UPSET" not in texts(a, 2 * S)
+    a.on_message(attitude(88.0), 3 * S)
+    a.on_message(env("samples.attitude"), int(3.2 * S))  # unreadable: changes nothing
+    a.on_message(attitude(89.0), int(3.4 * S))
+    assert "UPSET" not in texts(a, int(3.4 * S))  # not yet half a second
+    assert "UPSET 2.0 s (TILTED 89 DEG)" in texts(a, 5 * S)
+    a.on_message(attitude(10.0), 6 * S)  # level again: righted, or a flip that recovered
+    assert "UPSET" not in texts(a, 6 * S)
+    (ev,) = [e for e in a.events if e["kind"] == "upset"]
+    assert ev["t_s"] == 5.0 and ev["duration_s"] == 1.0
+    assert a.data_loss() == []  # being upset loses no data
