@@ -109,6 +109,10 @@ def test_the_summary_says_when_the_vehicle_was_upset():
     level = SimpleNamespace(start_ns=0, stats={"detector": {"upset_ms": 0, "upset_first_ns": -1}})
     assert upset_text(level) == "no"
     assert upset_text(SimpleNamespace(start_ns=0, stats={})) == "no"  # a report before it
+    null = SimpleNamespace(
+        start_ns=0, stats={"detector": {"upset_ms": None, "upset_first_ns": None}}
+    )
+    assert upset_text(null) == "no"
 
 
 def test_the_summary_says_where_the_refits_time_went():
