@@ -101,7 +101,8 @@ class StageStats:
 #: counts the data time past it (``StageStats.upset_ms``), which report.html and the benches
 #: show, so a crashed flight is known as one.
 UPSET_TILT_DEG = 60.0
-_UPSET_COS = math.cos(math.radians(UPSET_TILT_DEG))
+#: ... as the cosine of the angle between the thrust axis and the vertical (``tilt_cos``).
+UPSET_COS = math.cos(math.radians(UPSET_TILT_DEG))
 #: The longest step between two IMU samples counted as upset time (a gap counts this much).
 _UPSET_MAX_STEP_NS = 100_000_000
 
@@ -353,7 +354,7 @@ class ContactStage:
         """Add the step since the last processed sample to ``upset_ms`` when the body is
         tilted past ``UPSET_TILT_DEG`` at ``t`` (attitude ``q``, w x y z FRD -> NED)."""
         prev, self._last_processed = self._last_processed, t
-        if not tilt_cos(q) < _UPSET_COS:  # level enough, or an unknown attitude
+        if not tilt_cos(q) < UPSET_COS:  # level enough, or an unknown attitude
             return
         if self.stats.upset_first_ns < 0:
             self.stats.upset_first_ns = t

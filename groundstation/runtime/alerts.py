@@ -41,7 +41,7 @@ from typing import Any
 
 from groundstation.bus.envelope import Envelope
 from groundstation.contact.impulse import tilt_cos
-from groundstation.contact.stage import UPSET_TILT_DEG
+from groundstation.contact.stage import UPSET_COS
 
 S = 1_000_000_000
 #: Streams watched for silence: topic -> name on the status line.
@@ -153,7 +153,7 @@ class Alerts:
             return
         if math.isnan(c):
             return
-        if c < math.cos(math.radians(UPSET_TILT_DEG)):
+        if c < UPSET_COS:
             if self.upset_since_ns is None:
                 self.upset_since_ns = now_ns
             self.upset_deg = math.degrees(math.acos(max(-1.0, min(1.0, c))))
