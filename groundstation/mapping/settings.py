@@ -30,7 +30,7 @@ class MappingSettings:
         0.05 m grid, the cap seven times it. An uncapped fit on touch data smoothed boxes into
         blobs (l ~ 0.86 m: 25 % of the surface more than 0.1 m from the mesh). 0.35, not 0.5,
         since 2026-12-07: a kernel learnt at 0.395 m on 22 events of a crashed MuJoCo pier
-        flight drew a 1.13 m² web under its deck (0.11 m² at 0.35 with the hold below on).
+        flight drew a 1.13 m² web under its deck (0.70 m² at 0.35 clipped, 0.11 m² held).
         With the hold off, judged against 0.5 by a rule written before the runs
         (docs/results-history.md, "cap-035"): mean largest patch 0.0323 -> 0.0307 m² on the
         tuning seeds 200-202 and 0.123 -> 0.120 m² on fresh seeds 122-124, every other figure
