@@ -26,8 +26,10 @@ impulse stronger than the one that just ended opens one too: its ringing cannot 
 gust can push the vehicle into a wall right after, and that impact's onset is the contact). The
 baseline of the opening sample is frozen, and the candidate lasts while ``m`` stays
 ``release_ratio`` above it; a push longer than ``max_event_s`` is cut there. At the close, the
-impulse is integrated in the world frame (its direction is the outward normal ``n``; friction
-tilts it on oblique touches), its onset found by walking back from the peak to 15 % of it, and
+impulse is integrated in the world frame (its direction ``n``; friction tilts it on oblique
+touches), its onset found by walking back from the peak to 15 % of it (the surface normal
+contacts are placed with is ``n``, or with ``normal_from = "peak"`` the filtered residual's
+direction at that peak, free of the manoeuvre around the impact), and
 once ``evidence_window_s`` more of data has arrived the evidence of
 :mod:`groundstation.contact.evidence` is measured (duration, impulse, mocap approach and rebound
 speeds, their agreement with the IMU, how fast the vehicle was turning before the onset) and
@@ -155,7 +157,8 @@ class _Closed:
     baseline: np.ndarray
     peak_score: float
     rows: tuple[int, int]  # absolute indices: first row examined, closing row
-    normal: np.ndarray
+    normal: np.ndarray  # the integrated impulse's direction: what the evidence is measured along
+    surface_normal: np.ndarray  # the outward normal contacts are placed with (contact.normal_from)
     on: int  # absolute index of the onset row
     t_imp_end: int  # ns
     peak: float  # m/s^2 along the normal
@@ -542,6 +545,11 @@ class ImpulseDetector:
         t_on = int(c.t[rows[k_on]])
         t_end = int(c.t[rows[k_end]])  # the filtered impulse fell back here
         dv_imu = max(float((raw[k_on : k_end + 1] @ n).sum()), peak * float(dts[kp]))
+        surface_n = n
+        if self.settings.normal_from == "peak":
+            at_peak = float(np.linalg.norm(smooth[kp]))
+            if np.isfinite(at_peak) and at_peak > 1e-9:
+                surface_n = smooth[kp] / at_peak
         lat, ax = self._split((c.m[rows[kp]] - ev.baseline)[None, :])
         t_imp_end = max(t_end - self._w, t_on + 1)
         need = t_imp_end + int((_PRE_GAP_S + self.settings.evidence_window_s) * 1e9)
@@ -551,6 +559,7 @@ class ImpulseDetector:
                 peak_score=ev.peak_score,
                 rows=(int(first) + c.base, i_close),
                 normal=n,
+                surface_normal=surface_n,
                 on=int(rows[k_on]) + c.base,
                 t_imp_end=t_imp_end,
                 peak=peak,
@@ -605,7 +614,7 @@ class ImpulseDetector:
             t_on,
             int(c.t[close_row]),
             peak_g=cl.peak / G,
-            normal=n,
+            normal=cl.surface_normal,
             position=c.p[on_row].copy() if np.isfinite(c.p[on_row]).all() else None,
             p_false=p_false,
             features=feats,

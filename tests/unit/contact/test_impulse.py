@@ -200,6 +200,34 @@ def test_manoeuvres_along_the_thrust_axis_make_no_candidate():
     assert det.events == []
 
 
+def test_the_peak_normal_leaves_out_the_manoeuvre_around_the_impact():
+    # a touch on the wall (+x) at 1 m/s as the vehicle brakes hard sideways (4 m/s along +y in
+    # 0.5 s, up to 1.3 G): the candidate stays open through the braking, so the impulse
+    # integrated over it leans towards +y; the filtered residual at its peak is the impact's.
+    # Only where the contact is placed changes: the evidence is the same (measured along the
+    # integral, it doubts this touch; nothing is rejected here so that both are placed).
+    data = flight(impulses=[(3.0, 0.022, 1.5, WALL), (2.95, 0.5, 4.0, (0.0, 1.0, 0.0))],
+                  v0=(-1.0, 0.0, 0.0))  # fmt: skip
+    whole, obs_whole = run(data, ContactSettings(reject_p_false=1.0))
+    peak, obs_peak = run(data, ContactSettings(reject_p_false=1.0, normal_from="peak"))
+    assert len(whole.events) == len(peak.events) == 1
+    ew, ep = whole.events[0], peak.events[0]
+    assert math.degrees(math.acos(float(ew.normal @ WALL))) > 45.0
+    assert math.degrees(math.acos(float(ep.normal @ WALL))) < 10.0
+    assert ep.p_false == ew.p_false and ep.features == ew.features
+    t, _, _, pos = data
+    on = int(np.searchsorted(t, ep.t_start_ns))
+    wall_x = pos[on, 0] - 0.2  # the cylinder's radius ahead of the centre at the onset
+    placed = [o.position for o in obs_peak if o.label == LABEL_SURFACE]
+    assert placed and abs(placed[0][0] - wall_x) < 0.02
+    assert abs([o.position for o in obs_whole if o.label == LABEL_SURFACE][0][0] - wall_x) > 0.05
+
+
+def test_an_unknown_normal_source_is_refused():
+    with pytest.raises(ValueError, match="normal_from"):
+        ContactSettings(normal_from="mean")
+
+
 def test_a_gust_is_long_and_pushes_without_an_approach():
     det, _ = run(flight(impulses=[(3.0, 0.2, 1.5, (0.0, 1.0, 0.0))]))
     assert len(det.events) == 1
