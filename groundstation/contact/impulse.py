@@ -238,6 +238,7 @@ class ImpulseDetector:
         self._refractory_until = -(2**62)
         self._refractory_peak = math.inf  # peak score of the impulse that set the refractory
         self._last_event_end = -(2**62)
+        self._last_baseline: np.ndarray | None = None  # the last closed impulse's baseline
         #: (onset ns, world impulse direction) of recent candidates the model alone rejects
         self._false_pushes: list[tuple[int, np.ndarray]] = []
         self._last_external_t = -(2**62)
@@ -408,7 +409,8 @@ class ImpulseDetector:
             if ev is None:
                 rearmed = ti >= self._refractory_until or score[k] > self._refractory_peak
                 if warm[k] and rearmed and score[k] > 1.0:
-                    self._open = _Open(i + c.base, base[k].copy(), float(score[k]))
+                    held = self._opening_baseline(base[k], ti)
+                    self._open = _Open(i + c.base, held, float(score[k]))
                     self.stats.contacts += 1
                 elif ti - self._last_event_end >= self._quiet_ns:
                     out += self._external(pos[k], ti, i)
@@ -422,6 +424,19 @@ class ImpulseDetector:
         self._decided = hi + c.base
         self.last_score = float(score[-1])
         return out
+
+    def _opening_baseline(self, window: np.ndarray, t_ns: int) -> np.ndarray:
+        """The baseline an impulse opening at ``t_ns`` is measured from: its window's
+        (``window``), unless that window reaches back into the previous impulse
+        (``contact.hold_baseline``), whose own baseline then stands for the quiet level."""
+        held = self._last_baseline
+        if (
+            self.settings.hold_baseline
+            and held is not None
+            and t_ns - self._last_event_end < self._gap + self._B
+        ):
+            return held.copy()
+        return window.copy()
 
     def _finalize_until(self, t_ns: int) -> list[Observation]:
         """Decide the closed impulses whose evidence window ended by ``t_ns`` (data time)."""
@@ -572,6 +587,7 @@ class ImpulseDetector:
         self._refractory_until = t_close + int(self.settings.refractory_s * 1e9)
         self._refractory_peak = ev.peak_score
         self._last_event_end = t_close
+        self._last_baseline = ev.baseline
 
     def _evidence(self, cl: _Closed) -> list[Observation]:
         """Evidence, p_false, the event and its observations."""

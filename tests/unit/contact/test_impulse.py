@@ -223,6 +223,43 @@ def test_the_peak_normal_leaves_out_the_manoeuvre_around_the_impact():
     assert abs([o.position for o in obs_whole if o.label == LABEL_SURFACE][0][0] - wall_x) > 0.05
 
 
+def test_an_impact_right_after_a_gust_is_measured_from_the_baseline_before_the_gust():
+    # a gust (4 m/s sideways, +y, over 0.27 s) throws the vehicle, flying at the wall (+x) at
+    # 1 m/s, and ends 30 ms before the impact. The impact's own baseline window holds the
+    # gust's push; measured from it, the residual after the impact reads as the gust pushing
+    # back (-y, 2 G), the candidate stays open for most of a second, its direction is the
+    # gust's and the touch is nearly rejected. Measured from the baseline the gust's candidate
+    # was measured from, it is the impact: its onset, the wall's normal, a touch's evidence.
+    data = flight(impulses=[(2.76, 0.27, 4.0, (0.0, 1.0, 0.0)), (3.06, 0.022, 1.4, WALL)],
+                  v0=(-1.0, 0.0, 0.0))  # fmt: skip
+    t, _, _, pos = data
+    window, obs_window = run(data, ContactSettings(reject_p_false=1.0))
+    held, obs_held = run(data, ContactSettings(reject_p_false=1.0, hold_baseline=True))
+    assert len(window.events) == len(held.events) == 2
+    gust_w, impact_w = window.events
+    gust_h, impact_h = held.events
+    assert gust_h.features == gust_w.features  # the first impulse is measured as before
+    assert math.degrees(math.acos(float(impact_w.normal @ WALL))) > 60.0
+    assert impact_w.features.duration_s > 0.5 and impact_w.p_false > 0.9
+    assert math.degrees(math.acos(float(impact_h.normal @ WALL))) < 5.0
+    assert abs(impact_h.t_start_ns / 1e9 - 1.0 - 3.06) < 0.011
+    assert impact_h.features.duration_s < 0.05 and impact_h.p_false < 0.1
+    wall_x = pos[int(np.searchsorted(t, impact_h.t_start_ns)), 0] - 0.2
+    placed = [o.position for o in obs_held if o.label == LABEL_SURFACE and o.event_id == 1]
+    assert placed and abs(placed[0][0] - wall_x) < 0.02
+
+
+def test_a_later_impulse_keeps_its_own_baseline_once_the_window_is_clear():
+    # the same gust, the impact 0.4 s after it: its window no longer holds the gust, and
+    # holding the baseline changes nothing
+    data = flight(impulses=[(2.76, 0.27, 4.0, (0.0, 1.0, 0.0)), (3.43, 0.022, 1.4, WALL)],
+                  v0=(-1.0, 0.0, 0.0))  # fmt: skip
+    window, _ = run(data, ContactSettings(reject_p_false=1.0))
+    held, _ = run(data, ContactSettings(reject_p_false=1.0, hold_baseline=True))
+    assert len(window.events) == len(held.events) == 2
+    assert window.events[1].features == held.events[1].features
+
+
 def test_an_unknown_normal_source_is_refused():
     with pytest.raises(ValueError, match="normal_from"):
         ContactSettings(normal_from="mean")
