@@ -233,8 +233,8 @@ def test_an_impact_right_after_a_gust_is_measured_from_the_baseline_before_the_g
     data = flight(impulses=[(2.76, 0.27, 4.0, (0.0, 1.0, 0.0)), (3.06, 0.022, 1.4, WALL)],
                   v0=(-1.0, 0.0, 0.0))  # fmt: skip
     t, _, _, pos = data
-    window, obs_window = run(data, ContactSettings(reject_p_false=1.0))
-    held, obs_held = run(data, ContactSettings(reject_p_false=1.0, hold_baseline=True))
+    window, _ = run(data, ContactSettings(reject_p_false=1.0, hold_baseline=False))
+    held, obs_held = run(data, ContactSettings(reject_p_false=1.0))  # the default
     assert len(window.events) == len(held.events) == 2
     gust_w, impact_w = window.events
     gust_h, impact_h = held.events
@@ -254,8 +254,8 @@ def test_a_later_impulse_keeps_its_own_baseline_once_the_window_is_clear():
     # holding the baseline changes nothing
     data = flight(impulses=[(2.76, 0.27, 4.0, (0.0, 1.0, 0.0)), (3.43, 0.022, 1.4, WALL)],
                   v0=(-1.0, 0.0, 0.0))  # fmt: skip
-    window, _ = run(data, ContactSettings(reject_p_false=1.0))
-    held, _ = run(data, ContactSettings(reject_p_false=1.0, hold_baseline=True))
+    window, _ = run(data, ContactSettings(reject_p_false=1.0, hold_baseline=False))
+    held, _ = run(data, ContactSettings(reject_p_false=1.0))
     assert len(window.events) == len(held.events) == 2
     assert window.events[1].features == held.events[1].features
 
