@@ -24,7 +24,9 @@ Events
 A candidate opens when ``s > 1`` (armed: warmed up, refractory over; within the refractory an
 impulse stronger than the one that just ended opens one too: its ringing cannot outgrow it, but a
 gust can push the vehicle into a wall right after, and that impact's onset is the contact). The
-baseline of the opening sample is frozen, and the candidate lasts while ``m`` stays
+baseline of the opening sample is frozen (with ``hold_baseline``, one that opens while its window
+still holds the previous impulse takes that impulse's baseline: the quiet level before the gust,
+not the gust), and the candidate lasts while ``m`` stays
 ``release_ratio`` above it; a push longer than ``max_event_s`` is cut there. At the close, the
 impulse is integrated in the world frame (its direction ``n``; friction tilts it on oblique
 touches), its onset found by walking back from the peak to 15 % of it (the surface normal

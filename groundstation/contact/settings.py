@@ -31,11 +31,11 @@ class ContactSettings:
         dv / window), longer ones lose slow touches (a 0.3 m/s touch averaged over 50 ms peaks
         near 0.86 G, over 30 ms near 1.4 G) while propeller vibration grows only slowly.
     baseline_s, baseline_gap_s : float
-        The baseline the impulse stands out from: the mean filtered specific force over
-        ``baseline_s`` before *and* after the sample, leaving ``baseline_gap_s`` out on each
-        side. Symmetric, so any manoeuvre whose acceleration changes linearly over a few tenths
-        of a second cancels (braking at the end of a path, turns); the detector therefore
-        decides ``baseline_gap_s + baseline_s`` of data time late.
+        The baseline the impulse stands out from: the filtered specific force over the
+        ``baseline_s`` before the sample, leaving the last ``baseline_gap_s`` out; across the
+        thrust axis its mean, along it the line through its two halves' means extrapolated to
+        the sample, so thrust ramps of braking and turning cancel (``contact/impulse.py``). It
+        looks only backwards: a strong impulse cannot echo into the samples before it.
     lateral_threshold_g, axial_threshold_g : float
         Trigger levels of the baseline residual, in G, across and along the thrust axis. A
         multirotor's own forces act along its thrust axis (plus small drag), so across it the
