@@ -217,7 +217,8 @@ _TABLE = [
         "dv_mps": Field("float", optional=True), "rebound": Field("bool", optional=True),
         "features": Field("dict", optional=True),
         "floor_clearance_m": Field("float", optional=True),
-        "at_floor": Field("bool", optional=True)},
+        "at_floor": Field("bool", optional=True),
+        "tilt_deg": Field("float", optional=True), "upset": Field("bool", optional=True)},
        {"position_m": _VEC3, "normal": _VEC3},
        "A contact began or ended: drone position (m, world) at its onset, outward unit normal, "
        "peak in G. The impulse detector sends begin and end together once it has decided, "
@@ -226,7 +227,8 @@ _TABLE = [
        "(impulse per unit mass along the normal), rebound and the named evidence features; "
        "state 'rejected': a candidate too likely false to make observations, or one begun "
        "with the body at the floor (at_floor; floor_clearance_m: the body's lowest point "
-       "above the configured floor at the onset, m)."),
+       "above the configured floor at the onset, m) or tilted past contact.reject_tilt_deg "
+       "(upset; tilt_deg: the thrust axis from the vertical at the onset)."),
     _t("observations", "observation", 2, "detector", "lossless", "data",
        {"id": Field("int"), "label": Field("int", choices=(-1, 0, 1)),
         "event_id": Field("int", optional=True), "accel_g": Field("float", optional=True),

@@ -102,7 +102,9 @@ class ContactEvent:
     impulse detector; ``p_false_impulse`` is the evidence model's value on the impulse alone
     (``p_false`` adds the burst context, ``contact.burst_odds``); ``floor_clearance_m`` is the
     height of the body's lowest point above the configured floor at the onset (NaN without a
-    floor, pose or attitude) and ``at_floor`` whether that rejected it (``contact.floor_z_m``).
+    floor, pose or attitude) and ``at_floor`` whether that rejected it (``contact.floor_z_m``);
+    ``tilt_deg`` is the body's tilt at the onset (NaN without an attitude) and ``upset`` whether
+    that rejected it (``contact.reject_tilt_deg``).
     """
 
     id: int
@@ -118,6 +120,8 @@ class ContactEvent:
     p_false_impulse: float = math.nan
     floor_clearance_m: float = math.nan
     at_floor: bool = False
+    tilt_deg: float = math.nan
+    upset: bool = False
 
 
 @dataclasses.dataclass

@@ -625,7 +625,11 @@ class ImpulseDetector:
             self._false_pushes.append((t_on, n))
         clearance = self._floor_clearance(on_row)
         at_floor = -self.vehicle.reach_m <= clearance <= s.floor_margin_m  # NaN: False
-        rejected = at_floor or not p_false < s.reject_p_false
+        cos_tilt = tilt_cos(c.q[on_row])
+        known = math.isfinite(cos_tilt)  # no attitude: no tilt, not upset
+        tilt = math.degrees(math.acos(min(1.0, max(-1.0, cos_tilt)))) if known else math.nan
+        upset = tilt > s.reject_tilt_deg
+        rejected = at_floor or upset or not p_false < s.reject_p_false
         close_row = cl.rows[1] - c.base
         event = ContactEvent(
             self._next_event_id,
@@ -640,6 +644,8 @@ class ImpulseDetector:
             p_false_impulse=p_impulse,
             floor_clearance_m=clearance,
             at_floor=at_floor,
+            tilt_deg=tilt,
+            upset=upset,
         )
         self._next_event_id += 1
         self.events.append(event)

@@ -84,6 +84,15 @@ class ContactSettings:
         motion-capture frame whose ground plane was set on the floor has it at 0.
     floor_margin_m : float
         ... the clearance above the floor within which a body counts as at it, metres.
+    reject_tilt_deg : float
+        A candidate that begins with the body's thrust axis tilted more than this from the
+        vertical is rejected (``state = "rejected"``, ``upset`` true; 180: none is): a
+        multirotor tilted that far is not flying but falling, flipping or lying where it
+        crashed, its impulses come from a body at rest on a structure or tumbling against it,
+        and the evidence model and the body's contact geometry were made for one in flight.
+        On the three crashed MuJoCo pier flights of seeds 128 and 130, 95 events began with
+        the body tilted past 60 deg (the line of ``contact.stage.UPSET_TILT_DEG``): 46 placed
+        more than 0.1 m off the surface, 30 flagged by the map.
     position_sigma_m : float
         Standard deviation of the mocap position, metres (a term of each contact's placement
         uncertainty ``sigma_m``).
@@ -267,6 +276,7 @@ class ContactSettings:
     burst_odds: float = 8.0
     floor_z_m: float | None = None
     floor_margin_m: float = 0.05
+    reject_tilt_deg: float = 180.0
     position_sigma_m: float = 0.003
     evidence_model: str = ""
     filter: Literal["moving_average", "butterworth2", "none"] = "moving_average"
@@ -315,6 +325,10 @@ class ContactSettings:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"contact.{name} must be > 0, got {getattr(self, name)!r}")
+        if not 0 < self.reject_tilt_deg <= 180:
+            raise ValueError(
+                f"contact.reject_tilt_deg must be in (0, 180], got {self.reject_tilt_deg!r}"
+            )
         if not 0 < self.external_max_tilt_deg <= 180:
             raise ValueError(
                 "contact.external_max_tilt_deg must be in (0, 180], got "

@@ -87,6 +87,7 @@ class StageStats:
     observations: int = 0
     events: int = 0
     at_floor: int = 0  # candidates rejected because they began with the body at the floor
+    upset_rejected: int = 0  # ... because they began with the body tilted past the line
     tilted: int = 0  # free-space samples not taken: the body was tilted past the limit
     upset_ms: int = 0  # data time with the body tilted past UPSET_TILT_DEG (a flip, a crash)
     upset_first_ns: int = -1  # data time of the first such sample (-1: none)
@@ -190,6 +191,8 @@ def event_payload(ev: ContactEvent, state: str) -> dict:
         )
     if math.isfinite(ev.floor_clearance_m):
         payload.update(floor_clearance_m=float(ev.floor_clearance_m), at_floor=bool(ev.at_floor))
+    if math.isfinite(ev.tilt_deg):
+        payload.update(tilt_deg=float(ev.tilt_deg), upset=bool(ev.upset))
     return payload
 
 
@@ -405,6 +408,7 @@ class ContactStage:
                 ("begin", ev.t_start_ns), ("end", ev.t_end_ns)
             )  # fmt: skip
             self.stats.at_floor += ev.at_floor
+            self.stats.upset_rejected += ev.upset
             for state, t in states:
                 self.stats.events += state == "begin"
                 out.append(self._env("contact.event", event_payload(ev, state), {

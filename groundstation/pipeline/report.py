@@ -242,14 +242,13 @@ def map_scene(result, trajectory: np.ndarray):
 
 def rejected_text(events) -> str:
     """How many candidates the detector rejected, and how many of them because they began with
-    the body at the floor (``contact.floor_z_m``)."""
+    the body at the floor (``contact.floor_z_m``) or upset (``contact.reject_tilt_deg``)."""
     rejected = [e for e in events if e.payload.get("state") == "rejected"]
     floor = sum(bool(e.payload.get("at_floor")) for e in rejected)
-    return (
-        f"{len(rejected)} ({floor} begun with the body at the floor)"
-        if floor
-        else str(len(rejected))
-    )
+    upset = sum(bool(e.payload.get("upset")) for e in rejected)
+    why = [f"{floor} begun with the body at the floor"] if floor else []
+    why += [f"{upset} begun with the body upset"] if upset else []
+    return f"{len(rejected)} ({', '.join(why)})" if why else str(len(rejected))
 
 
 def observations_text(result) -> str:

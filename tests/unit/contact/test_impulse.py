@@ -682,6 +682,25 @@ def test_a_candidate_begun_with_the_body_at_the_floor_is_rejected(clearance, at_
         assert ev.floor_clearance_m == pytest.approx(clearance, abs=0.01)
 
 
+@pytest.mark.parametrize(("deg", "line", "upset"), [(90.0, 60.0, True), (45.0, 60.0, False),
+                                                   (170.0, 180.0, False)])  # fmt: skip
+def test_a_candidate_begun_with_the_body_upset_is_rejected(deg, line, upset):
+    # the body lies tilted by ``deg`` from before the touch until after it
+    data = _tilted_during(flight(**touch(speed=0.6)), 2.5, 4.0, deg)
+    det, obs = run(data, ContactSettings(reject_tilt_deg=line))
+    ev = det.events[0]
+    assert ev.tilt_deg == pytest.approx(deg, abs=0.5)
+    assert ev.upset is upset and ev.rejected is upset
+    assert ev.p_false < 0.5  # the impulse alone says touch: only the tilt rejects it
+    assert (len([o for o in obs if o.label == LABEL_SURFACE]) == 0) is upset
+
+
+def test_the_tilt_line_is_checked():
+    for bad in (0.0, -10.0, 181.0, math.nan):
+        with pytest.raises(ValueError, match="reject_tilt_deg"):
+            ContactSettings(reject_tilt_deg=bad)
+
+
 def test_floor_settings_are_checked():
     for bad in (math.inf, math.nan):  # NaN would also make two equal settings unequal
         with pytest.raises(ValueError, match="floor_z_m"):
