@@ -847,6 +847,48 @@ def test_an_internal_row_another_face_of_the_solid_places_outside_it_is_left_out
     assert internal(side + level + gust)[0] == [0, 1, 2]
 
 
+def test_a_corner_whose_normal_is_tilted_is_one_solid_within_the_tilt_allowed():
+    """``mapping.solid_tilt_deg``: a box at x < 0.5, y < 0 (a MuJoCo dock flight, seed 132).
+    The +y face's touch at x = 0.08 has its normal tilted 8 deg towards +x, which puts the +x
+    face's touch at the corner 6 cm in front of its plane: not one solid at 2 cm, so the +x
+    touch's internal row, tilted 14 deg across the corner and 3 cm in front of the +y face,
+    stays. Allowing 15 deg (2 cm + 0.42 m sin 15 deg = 13 cm) it is one solid and the row goes.
+    Two boxes' faces facing each other 1 m apart stay two solids at 20 deg."""
+    from groundstation.mapping.training import one_solid
+
+    def unit(v):
+        v = np.asarray(v, dtype=float)
+        return v / np.linalg.norm(v)
+
+    def touch(i, at, normal, inner):
+        at, normal = np.asarray(at, dtype=float), unit(normal)
+        return [
+            Observation(2 * i, int(5e9 * i), at, 0.0, normal, i, 0.1, sigma_m=0.01),
+            Observation(2 * i + 1, int(5e9 * i), np.asarray(inner, dtype=float), -1.0, normal,
+                        i, 0.1, sigma_m=0.01),
+        ]  # fmt: skip
+
+    n_side = unit([math.sin(math.radians(8)), math.cos(math.radians(8)), 0.0])
+    side = touch(0, [0.08, 0.003, 1.5], n_side, [0.08, 0.003, 1.5] - 0.1 * n_side)
+    n_end = unit([math.cos(math.radians(14)), -math.sin(math.radians(14)), 0.0])
+    end = touch(1, [0.505, 0.01, 1.52], n_end, [0.505, 0.01, 1.52] - 0.1 * n_end)
+    assert (end[1].position[1]) > 0.02  # the end touch's internal row is in front of the +y face
+
+    def internal(tilt):
+        policy = TrainingPolicy(internal_guard_m=0.5, plane_max_p_false=0.3, solid_tilt_deg=tilt)
+        ts = build_training_set(side + end, policy)
+        return sorted(ts.groups.row_group[ts.y < 0].tolist())
+
+    assert internal(0.0) == [0, 1]
+    assert internal(15.0) == [0]
+    a, b = np.array([[0.08, 0.003, 1.5]]), np.array([[0.505, 0.01, 1.52]])
+    assert not one_solid(a, n_side[None], b, n_end[None])[0]
+    assert one_solid(a, n_side[None], b, n_end[None], 15.0)[0]
+    facing = (np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
+    far = (np.array([[1.0, 0.2, 1.0]]), np.array([[-1.0, 0.0, 0.0]]))
+    assert not one_solid(facing[0], facing[1], far[0], far[1], 20.0)[0]
+
+
 def wavy_wall(seed=0, n=250):
     """Contacts on a wavy wall x = 0.08 sin(2 pi z / 0.7) over 3 m x 3 m, an internal point
     0.1 m behind each, free points in front: a surface whose length scale the data identify."""
