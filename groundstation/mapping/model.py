@@ -115,7 +115,7 @@ def training_policy(
         companion_s=mapping.companion_s,
         body_clearance=mapping.body_clearance,
         lone_reach_m=mapping.lone_reach_m,
-        solid_tilt_deg=mapping.solid_tilt_deg,
+        internal_guard_tilt_deg=mapping.internal_guard_tilt_deg,
     )
 
 
@@ -247,7 +247,6 @@ class SurfaceModel:
             ms.open_offset, ms.open_start_m, ms.open_end_m, ts.X[surface],
             ts.X[touch], ts.normals[touch], reach_m=ms.open_reach_m, front_m=ms.open_front_m,
             inside_m=self.policy.internal_depth_m, free=ts.X[ts.y > 0.0], solid=ms.open_solid,
-            solid_tilt_deg=ms.solid_tilt_deg,
         )  # fmt: skip
 
     def learn_kernel_now(self, ts: TrainingSet) -> bool:

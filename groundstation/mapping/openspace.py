@@ -73,8 +73,6 @@ class OpenSpaceOffset:
         Free-space samples (None: none).
     solid : bool
         Cancel the fade in front of another face of the nearest touch's solid.
-    solid_tilt_deg : float
-        The normals' tilt the one-solid test allows (``training.one_solid``).
     """
 
     def __init__(
@@ -90,7 +88,6 @@ class OpenSpaceOffset:
         inside_m: float = 0.1,
         free: np.ndarray | None = None,
         solid: bool = False,
-        solid_tilt_deg: float = 0.0,
     ) -> None:
         if not 0.0 <= start_m < end_m:
             raise ValueError(f"need 0 <= start_m < end_m, got {start_m!r}, {end_m!r}")
@@ -105,7 +102,6 @@ class OpenSpaceOffset:
         self.front_m = float(front_m)
         self.inside_m = float(inside_m)
         self.solid = bool(solid)
-        self.solid_tilt_deg = float(solid_tilt_deg)
         self.anchors = np.asarray(anchors, dtype=np.float64)
         none = self.offset == 0.0 or self.anchors.shape[0] == 0
         self._tree = None if none else cKDTree(self.anchors)
@@ -192,9 +188,9 @@ class OpenSpaceOffset:
         if todo.size:
             new = first[todo]
             a, b = np.repeat(new, tree.n), np.tile(np.arange(tree.n), new.size)
-            self._solid[new] = one_solid(
-                tree.data[a], n[a], tree.data[b], n[b], self.solid_tilt_deg
-            ).reshape(new.size, -1)
+            self._solid[new] = one_solid(tree.data[a], n[a], tree.data[b], n[b]).reshape(
+                new.size, -1
+            )
             self._solid_done[new] = True
         return self._solid[first]
 

@@ -285,14 +285,17 @@ class MappingSettings:
         edge whose normal is tilted across it puts its internal row past the other face, in
         open space, with a value that says 'inside': the field goes negative there and the
         surface bulges round it.
-    solid_tilt_deg : float
-        How far the detector may tilt a touch's normal when the guards above and the open
-        space (``open_solid``) ask whether two touches are faces of one solid (each on or
-        behind the other's tangent plane, ``training.one_solid``): the test allows 2 cm plus
-        their distance times the sine of this (0: 2 cm at any distance). On MuJoCo the normals
-        lie 13.5 deg off (median): touches on a box's two faces 0.42 m apart round a corner
-        (a fresh dock flight, seed 132) failed the test by 4 cm, and the internal row of one,
-        3 cm past the other face, drew a 0.10 m² bulge in front of it.
+    internal_guard_tilt_deg : float
+        How far the detector may tilt a touch's normal when the internal guard asks whether
+        two touches are faces of one solid (each on or behind the other's tangent plane,
+        ``training.one_solid``): the test allows 2 cm plus their distance times the sine of
+        this (0: 2 cm at any distance). On MuJoCo the normals lie 13.5 deg off (median):
+        touches on a box's two faces 0.42 m apart round a corner (a dock flight of reporting
+        seed 132) failed the test by 4 cm, and the internal row of one, 3 cm past the other
+        face, drew a 0.10 m² bulge in front of it (0.03 m² at 15 deg). The same tolerance in
+        the plane guard and the open space as well (``solid_tilt``, judged 2026-12-08) drew
+        0.23-0.28 m² beside the tuning yard's sphere: the plane guard then cut points a
+        curved face needs.
     lone_reach_m : float
         An event no other event's contact lies within this of (its contacts' centroid) is
         *uncorroborated*, and decided on the ``mapper.lone_flag_p`` line instead of
@@ -513,7 +516,7 @@ class MappingSettings:
     plane_guard_solid_m: float = 1.0
     internal_guard_m: float = 0.5
     lone_reach_m: float = 0.5
-    solid_tilt_deg: float = 0.0
+    internal_guard_tilt_deg: float = 0.0
     model: Literal["robust", "gpis"] = "robust"
     lengthscale: float = 0.25
     signal_var: float = 1.0
@@ -637,9 +640,10 @@ class MappingSettings:
                 "mapping.open_offset must be >= 0 and open_reach_m, open_front_m > 0, got "
                 f"{self.open_offset!r}, {self.open_reach_m!r}, {self.open_front_m!r}"
             )
-        if not 0.0 <= self.solid_tilt_deg < 90.0:
+        if not 0.0 <= self.internal_guard_tilt_deg < 90.0:
             raise ValueError(
-                f"mapping.solid_tilt_deg must be in [0, 90) degrees, got {self.solid_tilt_deg!r}"
+                "mapping.internal_guard_tilt_deg must be in [0, 90) degrees, got "
+                f"{self.internal_guard_tilt_deg!r}"
             )
         if not -1.0 <= self.inside_value < 0.0:
             raise ValueError(f"mapping.inside_value must be in [-1, 0), got {self.inside_value!r}")

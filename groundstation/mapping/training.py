@@ -170,7 +170,7 @@ class TrainingPolicy:
     companion_s: float = 0.0
     body_clearance: bool = False
     lone_reach_m: float = 0.0
-    solid_tilt_deg: float = 0.0
+    internal_guard_tilt_deg: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -391,7 +391,7 @@ def build_training_set(
     if p.internal_guard_m > 0 and d == 3:
         inner = np.flatnonzero(cell_lab < 0)
         outside[inner] = _past_edge(cell_x[inner], cell_g[inner], cen, nrm, guard,
-                                    p.internal_guard_m, p.solid_tilt_deg)  # fmt: skip
+                                    p.internal_guard_m, p.internal_guard_tilt_deg)  # fmt: skip
     kept = np.flatnonzero(~is_settled[cell_g] & ~outside)
     rows_X.append(cell_x[kept])
     rows_y.append(np.where(cell_lab[kept] == 0, 0.0, p.inside_value))
@@ -445,7 +445,7 @@ def build_training_set(
         keep = _plane_keep(
             np.array([g for g, _ in planar], dtype=np.int64),
             np.array([t for _, t in planar]).reshape(-1, 4, 3),
-            cen, nrm, rho, p.plane_guard_m, p.plane_guard_solid_m, p.solid_tilt_deg,
+            cen, nrm, rho, p.plane_guard_m, p.plane_guard_solid_m,
         )  # fmt: skip
         kept = dict(zip([g for g, _ in planar], keep, strict=True))
         for g, a, b, on in todo:
@@ -534,7 +534,7 @@ def _centres_normals(
 
 def _plane_keep(
     groups: np.ndarray, tangents: np.ndarray, cen: np.ndarray, nrm: np.ndarray, reach: float,
-    guard_m: float, solid_m: float, tilt_deg: float = 0.0,
+    guard_m: float, solid_m: float,
 ) -> np.ndarray:  # fmt: skip
     """(m, k) bool: which plane points ``cen[groups[i]] + reach * tangents[i, j]`` are kept,
     for every group at once (the touches near each point found in one k-d tree query). A
@@ -578,7 +578,7 @@ def _plane_keep(
     dist = np.linalg.norm(Q[qi] - cen[j], axis=1)
     off = cen[j] - centre[gi]  # from the touch to its neighbour
     behind = -np.einsum("ij,ij->i", off, n_g)  # h: how far behind the tangent plane
-    solid = one_solid(centre[gi], n_g, cen[j], n_j, tilt_deg)
+    solid = one_solid(centre[gi], n_g, cen[j], n_j)
     past_edge = ((dist <= guard_m) | (solid & (dist <= solid_m))) & (
         np.einsum("ij,ij->i", Q[qi] - cen[j], n_j) > PLANE_BEYOND_TOL_M
     )
@@ -793,13 +793,7 @@ def _swept(
         rims = _rims(centres[rim_of], normals[rim_of], p.sweep_disc_m).reshape(-1, 3)
         owner = np.repeat(rim_of, DISC_POINTS)
         keep = ~_past_edge(
-            rims,
-            owner,
-            centres,
-            normals,
-            guard,
-            PLANE_GUARD_REACHES * p.sweep_disc_m,
-            p.solid_tilt_deg,
+            rims, owner, centres, normals, guard, PLANE_GUARD_REACHES * p.sweep_disc_m
         )
         _inside_body(free, rims[keep], normals[owner[keep]], owner[keep], t_span, p, out)
     return out
@@ -840,8 +834,8 @@ def one_solid(
     """(k,) bool: touches ``a[k]`` and ``b[k]`` (outward normals ``na``, ``nb``) may be faces
     of one solid: each lies on or behind the other's tangent plane, within
     ``PLANE_BEYOND_TOL_M`` plus their distance times ``sin(tilt_deg)`` (``mapping.
-    solid_tilt_deg``): a normal the detector tilts by that much moves the other touch that far
-    in front of its plane, 6 cm for 8 degrees across a 0.42 m box corner on MuJoCo."""
+    internal_guard_tilt_deg``): a normal the detector tilts by that much moves the other
+    touch that far in front of its plane, 6 cm for 8 deg across a 0.42 m box corner."""
     tol = PLANE_BEYOND_TOL_M
     if tilt_deg > 0.0:
         tol = tol + np.linalg.norm(a - b, axis=1) * math.sin(math.radians(tilt_deg))

@@ -848,12 +848,12 @@ def test_an_internal_row_another_face_of_the_solid_places_outside_it_is_left_out
 
 
 def test_a_corner_whose_normal_is_tilted_is_one_solid_within_the_tilt_allowed():
-    """``mapping.solid_tilt_deg``: a box at x < 0.5, y < 0 (a MuJoCo dock flight, seed 132).
-    The +y face's touch at x = 0.08 has its normal tilted 8 deg towards +x, which puts the +x
-    face's touch at the corner 6 cm in front of its plane: not one solid at 2 cm, so the +x
-    touch's internal row, tilted 14 deg across the corner and 3 cm in front of the +y face,
-    stays. Allowing 15 deg (2 cm + 0.42 m sin 15 deg = 13 cm) it is one solid and the row goes.
-    Two boxes' faces facing each other 1 m apart stay two solids at 20 deg."""
+    """``mapping.internal_guard_tilt_deg``: a box at x < 0.5, y < 0 (a MuJoCo dock flight,
+    seed 132). The +y face's touch at x = 0.08 has its normal tilted 8 deg towards +x, which
+    puts the +x face's touch at the corner 6 cm in front of its plane: not one solid at 2 cm,
+    so the +x touch's internal row, tilted 14 deg across the corner and 3 cm in front of the
+    +y face, stays. Allowing 15 deg (2 cm + 0.42 m sin 15 deg = 13 cm) it is one solid and the
+    row goes. Two boxes' faces facing each other 1 m apart stay two solids at 20 deg."""
     from groundstation.mapping.training import one_solid
 
     def unit(v):
@@ -875,7 +875,9 @@ def test_a_corner_whose_normal_is_tilted_is_one_solid_within_the_tilt_allowed():
     assert (end[1].position[1]) > 0.02  # the end touch's internal row is in front of the +y face
 
     def internal(tilt):
-        policy = TrainingPolicy(internal_guard_m=0.5, plane_max_p_false=0.3, solid_tilt_deg=tilt)
+        policy = TrainingPolicy(
+            internal_guard_m=0.5, plane_max_p_false=0.3, internal_guard_tilt_deg=tilt
+        )
         ts = build_training_set(side + end, policy)
         return sorted(ts.groups.row_group[ts.y < 0].tolist())
 
