@@ -891,6 +891,15 @@ def test_a_corner_whose_normal_is_tilted_is_one_solid_within_the_tilt_allowed():
     assert not one_solid(facing[0], facing[1], far[0], far[1], 20.0)[0]
 
 
+def test_the_internal_guards_tilt_is_checked():
+    from groundstation.mapping.settings import MappingSettings
+
+    for bad in (-1.0, 90.0, math.nan):
+        with pytest.raises(ValueError, match="internal_guard_tilt_deg"):
+            MappingSettings(internal_guard_tilt_deg=bad)
+    assert MappingSettings(internal_guard_tilt_deg=15.0).internal_guard_tilt_deg == 15.0
+
+
 def wavy_wall(seed=0, n=250):
     """Contacts on a wavy wall x = 0.08 sin(2 pi z / 0.7) over 3 m x 3 m, an internal point
     0.1 m behind each, free points in front: a surface whose length scale the data identify."""
